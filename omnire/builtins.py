@@ -1,0 +1,1 @@
+"""Built-in registrations (filled in as the core grows)."""

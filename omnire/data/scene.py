@@ -1,0 +1,242 @@
+"""What a dataparser returns: :class:`SceneData`.
+
+Conventions (DESIGN.md section 3): world frame right-handed, z up, metres; cameras in
+OpenCV axes (x right, y down, z forward) stored as camera-to-world 4x4; intrinsics K in
+pixels at the *loaded* resolution, pixel centres at +0.5; quaternions wxyz; box pose =
+box-to-world SE(3) with origin at the box centre and x along the heading, size =
+(length, width, height). Frames are indexed 0..F-1 over the loaded frame range; every
+per-frame array has F rows. All arrays are numpy float64/float32 (converted to torch by
+the consumers), so a SceneData can be built and checked without torch.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+CATEGORIES = ("vehicle", "human", "cyclist", "other")
+"""Actor categories dataparsers map their class names to. Node types declare which they take."""
+
+
+class SceneDataError(ValueError):
+    """A dataparser produced, or was given, inconsistent data. The message names the field."""
+
+
+@dataclasses.dataclass
+class CameraSequence:
+    """One physical camera over the frame range.
+
+    Attributes:
+        name: camera name as the dataset calls it (e.g. ``front_camera``).
+        width, height: loaded image size in pixels.
+        intrinsics: (3, 3) pinhole K at the loaded resolution.
+        cam_to_world: (F, 4, 4) OpenCV camera-to-world per frame.
+        image_paths: F image files (any resolution; loaders resize to width x height).
+        timestamps: (F,) seconds.
+        sky_mask_paths: optional F mask files (non-zero = sky).
+        dynamic_mask_paths: optional ``{"human"|"vehicle"|"all": F files}`` (non-zero = actor).
+    """
+
+    name: str
+    width: int
+    height: int
+    intrinsics: np.ndarray
+    cam_to_world: np.ndarray
+    image_paths: list[Path]
+    timestamps: np.ndarray
+    sky_mask_paths: Optional[list[Path]] = None
+    dynamic_mask_paths: Optional[dict[str, list[Path]]] = None
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.image_paths)
+
+
+@dataclasses.dataclass
+class LidarSweeps:
+    """LiDAR points per frame, in the world frame.
+
+    Attributes:
+        points: F entries, each (N_t, 3) float32 world xyz, or None where the frame has no
+            LiDAR (a real gap: consumers must skip it).
+        origins: (F, 3) sensor origin in the world per frame (NaN where missing).
+    """
+
+    points: list[Optional[np.ndarray]]
+    origins: np.ndarray
+
+    def available_frames(self) -> list[int]:
+        return [i for i, p in enumerate(self.points) if p is not None]
+
+
+@dataclasses.dataclass
+class ActorTrack:
+    """One tracked actor.
+
+    Attributes:
+        track_id: stable id from the dataset (string).
+        class_name: the dataset's class label (e.g. ``Car``).
+        category: one of :data:`CATEGORIES`.
+        poses: (F, 4, 4) box-to-world; rows where ``present`` is False are unspecified.
+        size: (3,) length, width, height in metres (max over frames when the dataset varies).
+        present: (F,) bool, True where the actor is annotated in that frame.
+        stationary: True when the dataset says (or motion shows) the actor never moves.
+    """
+
+    track_id: str
+    class_name: str
+    category: str
+    poses: np.ndarray
+    size: np.ndarray
+    present: np.ndarray
+    stationary: bool = False
+
+    def frames(self) -> np.ndarray:
+        return np.flatnonzero(self.present)
+
+
+@dataclasses.dataclass
+class HumanPoseSequence:
+    """SMPL pose sequence of one pedestrian track (world frame, SMPL joint order).
+
+    Attributes:
+        track_id: the :class:`ActorTrack` this belongs to.
+        global_orient: (F, 3, 3) body-to-world rotation of the pelvis.
+        body_pose: (F, 23, 3, 3) local joint rotations.
+        betas: (B,) shape coefficients (B may be 0).
+        valid: (F,) bool, frames with an observed (not interpolated) estimate.
+        source: how the poses were obtained (estimator name, ``smpl.pkl``, ``neutral``).
+    """
+
+    track_id: str
+    global_orient: np.ndarray
+    body_pose: np.ndarray
+    betas: np.ndarray
+    valid: np.ndarray
+    source: str = "unknown"
+
+
+@dataclasses.dataclass(frozen=True)
+class View:
+    """One image of the scene: camera index and frame index."""
+
+    camera: int
+    frame: int
+
+
+def holdout_split(num_frames: int, every: int) -> tuple[np.ndarray, np.ndarray]:
+    """Train/test frame split: frames ``every, 2*every, ...`` are held out (all cameras).
+
+    With ``every <= 0`` nothing is held out. Returns (train_frames, test_frames) int arrays.
+    Matches the paper's protocol for N=10 (test frames 10, 20, ...).
+    """
+    frames = np.arange(num_frames)
+    if every <= 0:
+        return frames, frames[:0]
+    test = (frames % every == 0) & (frames > 0)
+    return frames[~test], frames[test]
+
+
+@dataclasses.dataclass
+class SceneData:
+    """Everything a scene holds, as returned by a dataparser.
+
+    Attributes:
+        name: human-readable scene name.
+        cameras: the cameras (each with F frames).
+        frame_timestamps: (F,) seconds of each frame.
+        source_frames: (F,) frame numbers in the source log (for file names and reports).
+        train_frames, test_frames: frame indices (into 0..F-1).
+        lidar: optional LiDAR sweeps.
+        tracks: actor tracks.
+        human_poses: optional pose sequences keyed by track id.
+        ego_poses: optional (F, 4, 4) ego-to-world.
+        attribution: licence text to show with renders of this data.
+    """
+
+    name: str
+    cameras: list[CameraSequence]
+    frame_timestamps: np.ndarray
+    source_frames: np.ndarray
+    train_frames: np.ndarray
+    test_frames: np.ndarray
+    lidar: Optional[LidarSweeps] = None
+    tracks: list[ActorTrack] = dataclasses.field(default_factory=list)
+    human_poses: dict[str, HumanPoseSequence] = dataclasses.field(default_factory=dict)
+    ego_poses: Optional[np.ndarray] = None
+    attribution: str = ""
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.frame_timestamps)
+
+    def views(self, frames: np.ndarray) -> list[View]:
+        """All (camera, frame) views for the given frames, frame-major."""
+        return [View(c, int(f)) for f in frames for c in range(len(self.cameras))]
+
+    def camera_index(self, name: str) -> int:
+        for i, cam in enumerate(self.cameras):
+            if cam.name == name:
+                return i
+        raise SceneDataError(
+            f"scene {self.name!r} has no camera {name!r}; cameras: {[c.name for c in self.cameras]}"
+        )
+
+    def validate(self) -> "SceneData":
+        """Check shapes and finiteness; raise :class:`SceneDataError` naming the field."""
+        F = self.num_frames
+        if F == 0:
+            raise SceneDataError(f"scene {self.name!r}: no frames")
+        if not self.cameras:
+            raise SceneDataError(f"scene {self.name!r}: no cameras")
+        for cam in self.cameras:
+            where = f"camera {cam.name!r}"
+            _check_shape(cam.intrinsics, (3, 3), f"{where}.intrinsics")
+            _check_shape(cam.cam_to_world, (F, 4, 4), f"{where}.cam_to_world")
+            if len(cam.image_paths) != F:
+                raise SceneDataError(f"{where}.image_paths: {len(cam.image_paths)} entries, expected {F}")
+            if cam.width <= 0 or cam.height <= 0:
+                raise SceneDataError(f"{where}: image size {cam.width}x{cam.height} must be positive")
+            for mask_list, label in [(cam.sky_mask_paths, "sky_mask_paths")] + [
+                (v, f"dynamic_mask_paths[{k!r}]") for k, v in (cam.dynamic_mask_paths or {}).items()
+            ]:
+                if mask_list is not None and len(mask_list) != F:
+                    raise SceneDataError(f"{where}.{label}: {len(mask_list)} entries, expected {F}")
+        if self.lidar is not None:
+            if len(self.lidar.points) != F:
+                raise SceneDataError(f"lidar.points: {len(self.lidar.points)} frames, expected {F}")
+            _check_shape(self.lidar.origins, (F, 3), "lidar.origins", finite=False)
+            for i, pts in enumerate(self.lidar.points):
+                if pts is not None:
+                    if pts.ndim != 2 or pts.shape[1] != 3:
+                        raise SceneDataError(f"lidar.points[{i}]: shape {pts.shape}, expected (N, 3)")
+                    if not np.isfinite(pts).all():
+                        raise SceneDataError(f"lidar.points[{i}]: non-finite coordinates")
+        for tr in self.tracks:
+            where = f"track {tr.track_id!r} ({tr.class_name})"
+            if tr.category not in CATEGORIES:
+                raise SceneDataError(f"{where}.category {tr.category!r}: expected one of {CATEGORIES}")
+            _check_shape(tr.poses, (F, 4, 4), f"{where}.poses", finite=False)
+            _check_shape(tr.size, (3,), f"{where}.size")
+            if tr.present.shape != (F,) or tr.present.dtype != bool:
+                raise SceneDataError(f"{where}.present: expected bool array of shape ({F},)")
+            if not np.isfinite(tr.poses[tr.present]).all():
+                raise SceneDataError(f"{where}.poses: non-finite pose in a frame where it is present")
+        for tid, hp in self.human_poses.items():
+            where = f"human_poses[{tid!r}]"
+            _check_shape(hp.global_orient, (F, 3, 3), f"{where}.global_orient")
+            _check_shape(hp.body_pose, (F, 23, 3, 3), f"{where}.body_pose")
+        split = np.concatenate([self.train_frames, self.test_frames])
+        if len(split) and (split.min() < 0 or split.max() >= F):
+            raise SceneDataError(f"train/test frames must lie in 0..{F - 1}")
+        return self
+
+
+def _check_shape(a: np.ndarray, shape: tuple[int, ...], field: str, finite: bool = True) -> None:
+    if not isinstance(a, np.ndarray) or a.shape != shape:
+        got = getattr(a, "shape", type(a).__name__)
+        raise SceneDataError(f"{field}: shape {got}, expected {shape}")
+    if finite and not np.isfinite(a).all():
+        raise SceneDataError(f"{field}: contains NaN or inf")
