@@ -1,0 +1,105 @@
+"""EWA projection of 3D Gaussians to screen-space 2D Gaussians (pure PyTorch).
+
+Shapes: N Gaussians. All functions are differentiable by autograd.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+
+def normalize_quats(quats: torch.Tensor) -> torch.Tensor:
+    """(N, 4) wxyz, any norm -> unit quats; zero quats become the identity (finite grads)."""
+    norm2 = (quats * quats).sum(-1, keepdim=True)
+    zero = norm2 < 1e-24
+    identity = torch.zeros_like(quats)
+    identity[:, 0] = 1.0
+    safe = torch.where(zero, identity, quats)
+    return safe * torch.rsqrt(torch.where(zero, torch.ones_like(norm2), norm2))
+
+
+def quats_to_rotmats(quats: torch.Tensor) -> torch.Tensor:
+    """(N, 4) unit wxyz -> (N, 3, 3) rotation matrices."""
+    w, x, y, z = quats.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)
+
+
+@dataclasses.dataclass
+class Projected:
+    """Screen-space Gaussians. ``visible`` (N,) bool marks the ones that can touch the image."""
+
+    means2d: torch.Tensor  # (N, 2) pixels
+    conics: torch.Tensor  # (N, 3) inverse 2D covariance (a, b, c): [[a, b], [b, c]]
+    depths: torch.Tensor  # (N,) camera z
+    radii: torch.Tensor  # (N,) int pixels, 0 where not visible
+    visible: torch.Tensor  # (N,) bool
+
+
+def project_gaussians(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,
+) -> Projected:
+    """Project (N,3) means with (N,4) quats and (N,3) scales through a pinhole camera.
+
+    Sigma2d = J W Sigma3d W^T J^T + eps2d I, with J the pinhole Jacobian at the camera-space
+    mean whose x/z, y/z are clamped to 1.3x the field of view (keeps far off-screen
+    Gaussians from producing huge footprints, as in 3DGS).
+    """
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    p = means @ R.T + t  # (N, 3) camera space
+    x, y, z = p.unbind(-1)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    in_depth = (z > near) & (z < far)
+    z_safe = torch.where(in_depth, z, torch.ones_like(z))
+
+    rot = quats_to_rotmats(normalize_quats(quats))  # (N, 3, 3)
+    M = rot * scales[:, None, :]  # R S
+    cov_world = M @ M.transpose(1, 2)
+    cov_cam = R @ cov_world @ R.T  # (N, 3, 3)
+
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    lim_x_pos = (width - cx) / fx + 0.3 * tan_x
+    lim_x_neg = cx / fx + 0.3 * tan_x
+    lim_y_pos = (height - cy) / fy + 0.3 * tan_y
+    lim_y_neg = cy / fy + 0.3 * tan_y
+    tx = z_safe * torch.minimum(torch.maximum(x / z_safe, -lim_x_neg), lim_x_pos)
+    ty = z_safe * torch.minimum(torch.maximum(y / z_safe, -lim_y_neg), lim_y_pos)
+    zero = torch.zeros_like(z_safe)
+    J = torch.stack(
+        [fx / z_safe, zero, -fx * tx / z_safe**2, zero, fy / z_safe, -fy * ty / z_safe**2], dim=-1
+    ).reshape(-1, 2, 3)
+    cov2d = J @ cov_cam @ J.transpose(1, 2)  # (N, 2, 2)
+    a = cov2d[:, 0, 0] + eps2d
+    b = cov2d[:, 0, 1]
+    c = cov2d[:, 1, 1] + eps2d
+    det = a * c - b * b
+    ok = in_depth & (det > 0)
+    det_safe = torch.where(ok, det, torch.ones_like(det))
+    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
+
+    means2d = torch.stack([fx * x / z_safe + cx, fy * y / z_safe + cy], dim=-1)
+    with torch.no_grad():
+        mid = 0.5 * (a + c)
+        lam = mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.1))
+        radius = torch.ceil(3.0 * torch.sqrt(lam))
+        mx, my = means2d.unbind(-1)
+        on_screen = (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) & (my - radius < height)
+        visible = ok & on_screen & torch.isfinite(radius)
+        radii = torch.where(visible, radius, torch.zeros_like(radius)).to(torch.int32)
+    return Projected(means2d, conics, z, radii, visible)
