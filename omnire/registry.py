@@ -138,8 +138,8 @@ class MethodSpec:
 
 @dataclasses.dataclass(frozen=True)
 class CommandSpec:
-    """An ``omnire <name>`` sub-command contributed by a plugin. ``main(argv)`` runs it."""
+    """An ``omnire <name>`` sub-command. ``main(argv, plugins)`` runs it and returns an exit code."""
 
     name: str
     description: str
-    main: Callable[[list[str]], int | None]
+    main: Callable[[list[str], Any], int | None]

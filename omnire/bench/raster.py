@@ -1,0 +1,293 @@
+"""``omnire bench raster``: forward / backward speed and peak memory of every rasterizer.
+
+For each (rasterizer, Gaussian count, resolution) case a fresh Python subprocess builds the
+same seeded random scene, renders ``warmup`` + ``repeats`` times and reports median forward
+and backward milliseconds (backward = ``loss.backward()`` of a weighted sum of rgb, depth and
+alpha, so every output's gradient path runs).
+
+Peak extra memory (honest and process-isolated): in the child, after the scene is built and
+the rasterizer constructed (extension loaded), we record the current RSS, reset the kernel's
+peak-RSS counter (``echo 5 > /proc/self/clear_refs``), run all iterations, then read
+``VmHWM``. Peak extra = VmHWM - baseline RSS, i.e. the largest resident growth during a
+forward + backward, including torch's allocator caching and the autograd graph. If the
+counter cannot be reset the value is an upper bound and the row says so.
+
+Scenes: Gaussians uniformly spread over the view frustum at depths 2-40 m, log-normal
+anisotropic scales whose median 1-sigma footprint s (pixels) is chosen so that
+N * pi * (2 s)^2 = coverage * H * W (default coverage 8: each pixel inside the 2-sigma
+ellipse of ~8 Gaussians), random rotations, opacities U(0.05, 0.95), RGB colours.
+
+A per-rasterizer time cap skips cases whose estimated run time (from the largest measured
+smaller case, scaled by Gaussians x pixels) exceeds it; the child also stops early if its
+first iteration shows the cap would be exceeded.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Optional
+
+import tyro
+
+
+@dataclasses.dataclass
+class BenchArgs:
+    """Benchmark the installed rasterizers on random scenes."""
+
+    gaussians: tuple[int, ...] = (10_000, 50_000, 200_000)
+    """Gaussian counts."""
+    resolutions: tuple[str, ...] = ("160x240", "320x480", "640x960")
+    """Image sizes as HEIGHTxWIDTH."""
+    repeats: int = 5
+    """Timed iterations per case (medians are reported)."""
+    warmup: int = 1
+    """Untimed iterations per case."""
+    output: Path = Path("outputs/bench/raster.json")
+    """Where the JSON results go (written atomically)."""
+    rasterizers: tuple[str, ...] = ()
+    """Rasterizer names; empty = every installed rasterizer available on the device."""
+    device: str = "cpu"
+    """Device to benchmark on."""
+    threads: int = 0
+    """torch / rasterizer threads (0 = torch.get_num_threads())."""
+    coverage: float = 8.0
+    """Scene density: average number of 2-sigma ellipses covering a pixel."""
+    time_cap: float = 120.0
+    """Seconds allowed per (rasterizer, case); longer estimated cases are skipped."""
+    seed: int = 0
+    """Scene seed."""
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    h, w = text.lower().split("x")
+    return int(h), int(w)
+
+
+def make_scene(n: int, height: int, width: int, coverage: float = 8.0, seed: int = 0, device: str = "cpu"):
+    """Random scene in front of an identity camera. Returns dict of float32 tensors
+    means (N,3), quats (N,4), scales (N,3), opacities (N,), colors (N,3), viewmat (4,4), K (3,3)."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    f = 0.5 * width / math.tan(math.radians(60.0) / 2)
+    K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    viewmat = torch.eye(4)
+    z = torch.empty(n).uniform_(2.0, 40.0, generator=g)
+    # up to 10% margin outside the image so border tiles see partial Gaussians
+    u = torch.empty(n).uniform_(-0.1 * width, 1.1 * width, generator=g)
+    v = torch.empty(n).uniform_(-0.1 * height, 1.1 * height, generator=g)
+    means = torch.stack([(u - width / 2) * z / f, (v - height / 2) * z / f, z], -1)
+    s_px = math.sqrt(coverage * height * width * 1.44 / (n * math.pi * 4.0))  # 1.44: margin area
+    scales = (s_px * z / f)[:, None] * torch.exp(0.4 * torch.randn(n, 3, generator=g))
+    quats = torch.randn(n, 4, generator=g)
+    opacities = torch.empty(n).uniform_(0.05, 0.95, generator=g)
+    colors = torch.rand(n, 3, generator=g)
+    out = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmat=viewmat, K=K)
+    return {k: t.to(device) for k, t in out.items()}
+
+
+def _rss_kib() -> int:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    return 0
+
+
+def _hwm_kib() -> int:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1])
+    return 0
+
+
+def _child(spec_json: str) -> None:
+    """Run one case; print one JSON line with the result."""
+    import torch
+
+    from omnire.plugins import load_plugins
+    from omnire.rasterization import select_rasterizer
+
+    spec = json.loads(spec_json)
+    if spec["threads"]:
+        torch.set_num_threads(spec["threads"])
+    plugins = load_plugins()
+    rast = select_rasterizer(plugins.rasterizers, spec["rasterizer"], spec["device"])
+    H, W = spec["height"], spec["width"]
+    scene = make_scene(spec["n"], H, W, spec["coverage"], spec["seed"], spec["device"])
+    gen = torch.Generator().manual_seed(1)
+    w_rgb = torch.rand(H, W, 3, generator=gen).to(spec["device"])
+    w_depth = (0.01 * torch.rand(H, W, 1, generator=gen)).to(spec["device"])
+    w_alpha = torch.rand(H, W, 1, generator=gen).to(spec["device"])
+    sync = torch.cuda.synchronize if spec["device"].startswith("cuda") else (lambda: None)
+    if spec["device"].startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    base = _rss_kib()
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        hwm_reset = True
+    except OSError:
+        hwm_reset = False
+    fwd, bwd = [], []
+    note = ""
+    total = spec["warmup"] + spec["repeats"]
+    t_start = time.perf_counter()
+    for it in range(total):
+        leaves = {k: v.detach().clone().requires_grad_(k not in ("viewmat", "K")) for k, v in scene.items()}
+        sync()
+        t0 = time.perf_counter()
+        out = rast.rasterize(**leaves, width=W, height=H)
+        sync()
+        t1 = time.perf_counter()
+        loss = (out.rgb * w_rgb).sum() + (out.depth * w_depth).sum() + (out.alpha * w_alpha).sum()
+        loss.backward()
+        sync()
+        t2 = time.perf_counter()
+        if it >= spec["warmup"]:
+            fwd.append((t1 - t0) * 1e3)
+            bwd.append((t2 - t1) * 1e3)
+        del out, loss, leaves
+        elapsed = time.perf_counter() - t_start
+        if it + 1 < total and elapsed / (it + 1) * total > spec["time_cap"]:
+            if not fwd:  # keep the (warm-up) sample rather than nothing
+                fwd.append((t1 - t0) * 1e3)
+                bwd.append((t2 - t1) * 1e3)
+            note = f"stopped after {it + 1} of {total} iterations (time cap {spec['time_cap']:.0f} s)"
+            break
+    if spec["device"].startswith("cuda"):
+        peak_mb = torch.cuda.max_memory_allocated() / 2**20
+        mem_note = "CUDA max_memory_allocated"
+    else:
+        peak_mb = max(0, _hwm_kib() - base) / 1024
+        mem_note = "" if hwm_reset else "upper bound (peak RSS counter not resettable)"
+
+    def median(xs):
+        xs = sorted(xs)
+        return xs[len(xs) // 2] if len(xs) % 2 else 0.5 * (xs[len(xs) // 2 - 1] + xs[len(xs) // 2])
+
+    print(json.dumps(dict(forward_ms=median(fwd), backward_ms=median(bwd), peak_extra_mb=peak_mb,
+                          samples=len(fwd), note="; ".join(x for x in (note, mem_note) if x))))
+
+
+def _run_case(spec: dict, timeout: float) -> dict:
+    cmd = [sys.executable, "-c", "import sys; from omnire.bench.raster import _child; _child(sys.argv[1])",
+           json.dumps(spec)]
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return dict(skipped=True, note=f"timed out after {timeout:.0f} s")
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        err = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+        return dict(skipped=True, note=f"failed (exit {proc.returncode}): {err[:200]}")
+    return json.loads(lines[-1])
+
+
+def write_json_atomic(path: Path, data) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(data, fh, indent=2)
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    import torch
+    from rich.console import Console
+    from rich.table import Table
+
+    from omnire.plugins import load_plugins
+
+    args = tyro.cli(BenchArgs, args=list(sys.argv[1:] if argv is None else argv), prog="omnire bench raster")
+    console = Console()
+    threads = args.threads or torch.get_num_threads()
+    plugins = load_plugins()
+    device = torch.device(args.device)
+    names = list(args.rasterizers) or plugins.rasterizers.names()
+    chosen = []
+    for name in names:
+        if name not in plugins.rasterizers:
+            console.print(f"[yellow]skip[/] {name}: not installed (installed: {', '.join(plugins.rasterizers.names())})")
+            continue
+        ok, reason = plugins.rasterizers.get(name).available(device)
+        if ok:
+            chosen.append(name)
+        else:
+            console.print(f"[yellow]skip[/] {name}: unavailable on {device}: {reason}")
+    if not chosen:
+        console.print("[red]no rasterizer to benchmark[/]")
+        return 1
+    cases = sorted(((n, *parse_resolution(r)) for n in args.gaussians for r in args.resolutions),
+                   key=lambda c: (c[0] * c[1] * c[2], c[0]))
+    results = []
+    for name in chosen:
+        measured: list[tuple[int, int, float]] = []  # (N, pixels, seconds per iteration)
+        for n, h, w in cases:
+            row = dict(rasterizer=name, gaussians=n, height=h, width=w, threads=threads)
+            est = None
+            smaller = [m for m in measured if m[0] <= n and m[1] <= h * w]
+            if smaller:
+                mn, mp, ms = max(smaller, key=lambda m: m[0] * m[1])
+                est = ms * (n / mn) * (h * w / mp) * (args.warmup + args.repeats)
+            if est is not None and est > args.time_cap:
+                row.update(skipped=True, note=f"estimated {est:.0f} s > time cap {args.time_cap:.0f} s")
+            else:
+                spec = dict(rasterizer=name, n=n, height=h, width=w, threads=threads, device=args.device,
+                            warmup=args.warmup, repeats=args.repeats, coverage=args.coverage, seed=args.seed,
+                            time_cap=args.time_cap)
+                row.update(_run_case(spec, timeout=max(300.0, 4 * args.time_cap)))
+                if not row.get("skipped"):
+                    measured.append((n, h * w, (row["forward_ms"] + row["backward_ms"]) / 1e3))
+            results.append(row)
+            status = "skipped: " + row["note"] if row.get("skipped") else \
+                f"fwd {row['forward_ms']:.1f} ms, bwd {row['backward_ms']:.1f} ms, +{row['peak_extra_mb']:.0f} MB"
+            console.print(f"  {name:>8} {n:>7} @ {h}x{w}: {status}")
+
+    # speed-up of each rasterizer against the reference (``torch``) in the same run
+    ref = {(r["gaussians"], r["height"], r["width"]): r for r in results if r["rasterizer"] == "torch"
+           and not r.get("skipped")}
+    for r in results:
+        key = (r["gaussians"], r["height"], r["width"])
+        if not r.get("skipped") and key in ref and r["rasterizer"] != "torch":
+            rr = ref[key]
+            r["speedup_vs_torch"] = (rr["forward_ms"] + rr["backward_ms"]) / (r["forward_ms"] + r["backward_ms"])
+
+    table = Table(title=f"rasterizers on {device}, {threads} threads (medians of {args.repeats})")
+    for col in ("rasterizer", "Gaussians", "HxW", "forward ms", "backward ms", "fwd+bwd ms", "peak extra MB",
+                "vs torch", "note"):
+        table.add_column(col, justify="left" if col in ("rasterizer", "note", "HxW") else "right")
+    for r in results:
+        if r.get("skipped"):
+            table.add_row(r["rasterizer"], str(r["gaussians"]), f"{r['height']}x{r['width']}", "-", "-", "-", "-", "-",
+                          r["note"])
+            continue
+        sp = r.get("speedup_vs_torch")
+        table.add_row(r["rasterizer"], str(r["gaussians"]), f"{r['height']}x{r['width']}", f"{r['forward_ms']:.1f}",
+                      f"{r['backward_ms']:.1f}", f"{r['forward_ms'] + r['backward_ms']:.1f}",
+                      f"{r['peak_extra_mb']:.0f}", f"{sp:.1f}x" if sp else "-", r.get("note", ""))
+    console.print(table)
+    payload = dict(device=str(device), threads=threads, repeats=args.repeats, warmup=args.warmup,
+                   coverage=args.coverage, seed=args.seed, torch=torch.__version__,
+                   time=time.strftime("%Y-%m-%dT%H:%M:%S"), results=results)
+    write_json_atomic(args.output, payload)
+    console.print(f"wrote {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

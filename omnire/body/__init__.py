@@ -1,0 +1,17 @@
+"""Body templates with the SMPL skeleton and numpy linear blend skinning."""
+from omnire.body.lbs import LBSOutput, axis_angle_to_matrix, forward_kinematics, lbs
+from omnire.body.template import (
+    SMPL_JOINT_NAMES,
+    SMPL_PARENTS,
+    BodyTemplate,
+    BodyTemplateError,
+    load_anny_template,
+    load_smpl_pickle,
+    load_template,
+)
+
+__all__ = [
+    "BodyTemplate", "BodyTemplateError", "LBSOutput", "SMPL_JOINT_NAMES", "SMPL_PARENTS",
+    "axis_angle_to_matrix", "forward_kinematics", "lbs", "load_anny_template",
+    "load_smpl_pickle", "load_template",
+]

@@ -1,0 +1,37 @@
+"""Method presets: which node types, which losses with which weights, densification.
+
+A method is a :class:`MethodConfig`; plugins register named presets through
+``omnire_register_methods``. ``nodes`` maps node-type names (from the node-type registry)
+to their configs; actor tracks are assigned to the enabled node types that declare their
+category (highest priority wins), so the core never tests class or node names.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from omnire.strategy import DensifyConfig
+
+
+@dataclasses.dataclass
+class MethodConfig:
+    """A reconstruction method."""
+
+    nodes: dict[str, Any] = dataclasses.field(default_factory=dict)
+    """Enabled node types and their configs (node-type name -> config)."""
+    loss_weights: dict[str, float] = dataclasses.field(
+        default_factory=lambda: {"l1": 0.8, "dssim": 0.2, "depth": 0.1}
+    )
+    """Loss term weights by registered loss name (0 disables a term)."""
+    regularization_weights: dict[str, float] = dataclasses.field(default_factory=dict)
+    """Weights of node regularisers by name (e.g. pose smoothness)."""
+    dynamic_pixel_weight: float = 1.0
+    """Image-loss weight on pixels of dynamic actors (the paper uses 5)."""
+    densify: DensifyConfig = dataclasses.field(default_factory=DensifyConfig)
+    """AbsGrad densification."""
+    sh_degree_interval: int = 1000
+    """Steps between switching on SH bands."""
+    background_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Colour under the Gaussians when the method has no environment (sky) node."""
+    rasterizer: str = "auto"
+    """Rasterizer backend name, or auto (gsplat on CUDA, native on CPU, else torch)."""

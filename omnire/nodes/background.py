@@ -1,0 +1,127 @@
+"""Background node: static Gaussians in the world frame.
+
+Initialised from the LiDAR of the training frames (points inside the boxes of actors that
+other nodes model are removed), voxel-downsampled, coloured from the images, plus random
+far points for what LiDAR does not reach.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import numpy as np
+import torch
+
+from omnire.gaussians import Gaussians
+from omnire.nodes.base import Node, NodeConfig, NodeContext, init_gaussian_params
+from omnire.pointcloud import colour_from_images, far_shell, knn_scales, points_in_box, to_tensor, voxel_downsample
+
+
+@dataclasses.dataclass
+class BackgroundConfig(NodeConfig):
+    """Static background Gaussians."""
+
+    _target: type = dataclasses.field(default_factory=lambda: BackgroundNode)
+    voxel_size: float = 0.15
+    """Voxel edge (m) for downsampling the accumulated LiDAR."""
+    max_lidar_points: int = 150_000
+    """Cap on LiDAR points after downsampling (random subset above it)."""
+    num_far_points: int = 20_000
+    """Random points in a far shell (1-3x the scene radius) for content beyond LiDAR."""
+    num_random_points_without_lidar: int = 50_000
+    """Points scattered in the camera frusta when the scene has no LiDAR."""
+    sh_degree: int = 3
+    """Highest SH degree (bands are switched on progressively by the trainer)."""
+    init_opacity: float = 0.1
+    """Initial opacity."""
+    lr_means: float = 1.6e-4
+    """Means lr (x scene radius), decaying to lr_means_final."""
+    lr_means_final: float = 1.6e-6
+    """Final means lr (x scene radius)."""
+    lr_sh0: float = 2.5e-3
+    """SH DC lr."""
+    lr_shN: float = 1.25e-4
+    """SH higher bands lr."""
+    lr_opacity: float = 0.05
+    """Opacity-logit lr."""
+    lr_scales: float = 5e-3
+    """Log-scale lr."""
+    lr_quats: float = 1e-3
+    """Quaternion lr."""
+
+
+def lidar_points_for_init(scene, frames: np.ndarray, excluded_tracks: list) -> np.ndarray:
+    """(N,3) LiDAR of ``frames`` in the world, without points inside excluded tracks' boxes
+    at that frame (those actors are modelled by their own nodes)."""
+    if scene.lidar is None:
+        return np.zeros((0, 3))
+    chunks = []
+    for f in frames:
+        pts = scene.lidar.points[int(f)]
+        if pts is None:
+            continue
+        keep = np.ones(len(pts), dtype=bool)
+        for tr in excluded_tracks:
+            if tr.present[int(f)]:
+                keep &= ~points_in_box(pts, tr.poses[int(f)], tr.size, margin=0.1)
+        chunks.append(pts[keep])
+    return np.concatenate(chunks) if chunks else np.zeros((0, 3))
+
+
+class BackgroundNode(Node):
+    def __init__(self, config: BackgroundConfig, context: NodeContext, tracks: Optional[list] = None) -> None:
+        super().__init__()
+        self.config = config
+        self.scene_radius = context.scene_radius
+        scene = context.scene
+        rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
+        pts = lidar_points_for_init(scene, scene.train_frames, context.excluded_tracks)
+        cams = np.stack([c.cam_to_world[f, :3, 3] for c in scene.cameras for f in scene.train_frames])
+        center = cams.mean(0)
+        if len(pts):
+            pts = voxel_downsample(pts, config.voxel_size)
+            if len(pts) > config.max_lidar_points:
+                pts = pts[rng.choice(len(pts), config.max_lidar_points, replace=False)]
+        else:
+            pts = _frustum_points(scene, config.num_random_points_without_lidar, rng)
+        ground = np.percentile(pts[:, 2], 5) if len(pts) else center[2] - 2.0
+        far = far_shell(center, max(context.scene_radius, 30.0) * 2.0, config.num_far_points, rng, min_z=ground)
+        all_pts = np.concatenate([pts, far]).astype(np.float32)
+        colours, _ = colour_from_images(all_pts, scene, context.images, scene.train_frames)
+        scales = knn_scales(all_pts)
+        params = init_gaussian_params(
+            to_tensor(all_pts), to_tensor(colours), to_tensor(scales), config.sh_degree, config.init_opacity, context.generator
+        )
+        for k, v in params.items():
+            self.gaussian_params[k] = torch.nn.Parameter(v.to(context.device))
+
+    def gaussians_at(self, frame: int, time: float):
+        rows = None  # all rows: the background is present at every frame
+        return Gaussians.from_params(self.gaussian_params), rows
+
+    def gaussian_lrs(self):
+        c, r = self.config, self.scene_radius
+        return {
+            "means": (c.lr_means * r, c.lr_means_final * r),
+            "sh0": (c.lr_sh0, None),
+            "shN": (c.lr_shN, None),
+            "opacities": (c.lr_opacity, None),
+            "scales": (c.lr_scales, None),
+            "quats": (c.lr_quats, None),
+        }
+
+
+def _frustum_points(scene, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Random points 2-60 m in front of the training cameras (no-LiDAR initialisation)."""
+    out = []
+    views = [(c, int(f)) for f in scene.train_frames for c in range(len(scene.cameras))]
+    per = max(1, count // max(1, len(views)))
+    for c, f in views:
+        cam = scene.cameras[c]
+        uv = rng.random((per, 2)) * [cam.width, cam.height]
+        depth = 2.0 + 58.0 * rng.random(per) ** 2
+        rays = np.concatenate([(uv - cam.intrinsics[:2, 2]) / np.diag(cam.intrinsics)[:2], np.ones((per, 1))], 1)
+        p_cam = rays * depth[:, None]
+        T = cam.cam_to_world[f]
+        out.append(p_cam @ T[:3, :3].T + T[:3, 3])
+    return np.concatenate(out)

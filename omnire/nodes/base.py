@@ -1,0 +1,156 @@
+"""Scene-graph node base class.
+
+A node type holds *all* actors it models (one node object per type, batched, as in the
+reference implementation), so per-step cost is one gather + one transform per type.
+
+Contract:
+- ``gaussian_params`` (ParameterDict, keys :data:`omnire.gaussians.GAUSSIAN_KEYS` plus any
+  per-Gaussian extras): every per-Gaussian tensor the densification strategy must clone,
+  split and prune. ``gaussian_buffers``: per-Gaussian non-trainable tensors (e.g. owning
+  instance), densified alongside.
+- ``gaussians_at(frame, time)`` returns the world-space Gaussians of the instances present
+  at that frame and the rows of ``gaussian_params`` they came from, or None (absent nodes
+  cost nothing).
+- ``param_groups()`` lists learning-rate groups, per-Gaussian ones by key.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Optional
+
+import torch
+from torch import nn
+
+from omnire.config import InstantiateConfig
+from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
+
+
+@dataclasses.dataclass
+class ParamGroup:
+    """One optimiser group. ``key`` names a per-Gaussian parameter (densified) or None."""
+
+    name: str
+    params: list[nn.Parameter]
+    lr: float
+    lr_final: Optional[float] = None
+    """If set, the lr decays exponentially from ``lr`` to ``lr_final`` over training."""
+    key: Optional[str] = None
+    warmup_steps: int = 0
+    """Linear warm-up from 0 (used for pose refinement)."""
+
+
+@dataclasses.dataclass
+class NodeConfig(InstantiateConfig):
+    """Base of every node config."""
+
+
+@dataclasses.dataclass
+class NodeContext:
+    """What a node gets when it is built.
+
+    Attributes:
+        scene: the SceneData.
+        images: the ImageCache (for colouring initial points).
+        scene_radius: scale of the scene in metres (learning rates of means scale with it).
+        device: torch device.
+        generator: seeded torch.Generator for initialisation.
+        excluded_tracks: tracks modelled by other nodes (background must not absorb them).
+    """
+
+    scene: Any
+    images: Any
+    scene_radius: float
+    device: torch.device
+    generator: torch.Generator
+    excluded_tracks: list = dataclasses.field(default_factory=list)
+
+
+class Node(nn.Module):
+    """Base class: see the module docstring for the contract."""
+
+    #: True for nodes that paint the image background (sky) instead of Gaussians.
+    is_environment: bool = False
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.gaussian_params = nn.ParameterDict()
+        self.gaussian_buffers: dict[str, torch.Tensor] = {}
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.gaussian_params["means"].shape[0]) if "means" in self.gaussian_params else 0
+
+    def gaussians_at(self, frame: int, time: float) -> Optional[tuple[Gaussians, torch.Tensor]]:
+        raise NotImplementedError
+
+    def param_groups(self) -> list[ParamGroup]:
+        return [
+            ParamGroup(f"{k}", [self.gaussian_params[k]], lr, lr_final, key=k)
+            for k, (lr, lr_final) in self.gaussian_lrs().items()
+        ]
+
+    def gaussian_lrs(self) -> dict[str, tuple[float, Optional[float]]]:
+        """Per-Gaussian learning rates: key -> (lr, final lr or None)."""
+        return {}
+
+    def extra_prune_mask(self) -> Optional[torch.Tensor]:
+        """(N,) bool of Gaussians to prune for node-specific reasons (e.g. left their box)."""
+        return None
+
+    def regularization(self, frame: int, time: float) -> dict[str, torch.Tensor]:
+        """Node-specific loss terms (name -> scalar), weighted by the method config."""
+        return {}
+
+    def set_gaussian_tensors(self, tensors: dict[str, torch.Tensor]) -> None:
+        """Replace every per-Gaussian tensor (used by densification and checkpoint loading)."""
+        for k, v in tensors.items():
+            if k in self.gaussian_params:
+                self.gaussian_params[k] = nn.Parameter(v, requires_grad=self.gaussian_params[k].requires_grad)
+            else:
+                self.gaussian_buffers[k] = v
+
+    # Checkpoints: Gaussian counts change during training, so resize before loading.
+    def get_extra_state(self) -> dict[str, torch.Tensor]:
+        return {k: v.clone() for k, v in self.gaussian_buffers.items()}
+
+    def set_extra_state(self, state: dict[str, torch.Tensor]) -> None:
+        self.gaussian_buffers = {k: v.clone() for k, v in state.items()}
+
+    def prepare_load(self, state_dict: dict[str, torch.Tensor], prefix: str = "") -> None:
+        for k in list(self.gaussian_params.keys()):
+            name = f"{prefix}gaussian_params.{k}"
+            if name in state_dict and state_dict[name].shape != self.gaussian_params[k].shape:
+                self.gaussian_params[k] = nn.Parameter(
+                    torch.empty_like(state_dict[name]), requires_grad=self.gaussian_params[k].requires_grad
+                )
+
+
+def init_gaussian_params(
+    points: torch.Tensor,
+    colors: torch.Tensor,
+    scales: torch.Tensor,
+    sh_degree: int,
+    opacity: float,
+    generator: Optional[torch.Generator] = None,
+) -> dict[str, torch.Tensor]:
+    """Raw parameters for Gaussians at ``points`` (N,3) with RGB ``colors`` (N,3) in [0,1]
+    and isotropic std ``scales`` (N,). Random rotations, constant opacity."""
+    from omnire.gaussians import num_sh_bases, rgb_to_sh0
+
+    N = points.shape[0]
+    quats = torch.randn(N, 4, generator=generator, dtype=points.dtype)
+    quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    return {
+        "means": points.clone(),
+        "quats": quats,
+        "scales": torch.log(scales.clamp_min(1e-6))[:, None].repeat(1, 3),
+        "opacities": torch.logit(torch.full((N,), opacity, dtype=points.dtype)),
+        "sh0": rgb_to_sh0(colors),
+        "shN": torch.zeros(N, num_sh_bases(sh_degree) - 1, 3, dtype=points.dtype),
+    }
+
+
+def assert_gaussian_keys(params: dict[str, torch.Tensor]) -> None:
+    missing = [k for k in GAUSSIAN_KEYS if k not in params]
+    if missing:
+        raise KeyError(f"gaussian params missing {missing}")

@@ -1,0 +1,209 @@
+"""Densification with absolute 2D gradients (AbsGrad), written once for every node.
+
+Per Gaussian the strategy accumulates |dL/d means2d| summed over pixels (from the
+rasterizer's ``absgrad2d``), scaled to normalised device units (x W/2, x H/2 as in
+3DGS/gsplat), and how often it was visible. Every ``refine_every`` steps between
+``refine_start`` and ``refine_stop``:
+
+- grow: Gaussians whose mean accumulated gradient exceeds ``grad_threshold`` are cloned
+  when small (max scale <= ``scale_threshold`` x scene radius) and split in two when large
+  (samples from the Gaussian, scales / 1.6);
+- prune: opacity < ``prune_opacity``, too large (> ``prune_scale`` x scene radius, after the
+  first opacity reset), non-finite, or flagged by the node (``Node.extra_prune_mask``);
+- every ``reset_every`` steps opacities are clamped to 2 x ``prune_opacity``.
+
+State is explicit (tensors per node) and saved in checkpoints.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Optional
+
+import torch
+
+from omnire.geometry import quat_to_rotmat
+from omnire.nodes.base import Node
+from omnire.optim import Optimizers
+
+
+@dataclasses.dataclass
+class DensifyConfig:
+    """AbsGrad densification settings (defaults: DESIGN.md section 4)."""
+
+    grad_threshold: float = 3e-4
+    """Mean normalised absolute 2D gradient above which a Gaussian grows."""
+    scale_threshold: float = 3e-3
+    """x scene radius: larger Gaussians are split, smaller cloned."""
+    refine_start: int = 500
+    """First step that refines."""
+    refine_every: int = 100
+    """Steps between refinements."""
+    refine_stop: int = 15_000
+    """No growth after this step."""
+    reset_every: int = 3000
+    """Opacity reset period (0 = never)."""
+    prune_opacity: float = 0.005
+    """Prune below this opacity."""
+    prune_scale: float = 0.1
+    """x scene radius: prune larger Gaussians (after the first opacity reset)."""
+    max_gaussians: int = 400_000
+    """Budget per node: growth stops adding above it (the largest gradients win)."""
+
+
+@dataclasses.dataclass
+class NodeSlice:
+    """Which rendered rows belong to a node: rendered[start:end] <- node rows ``rows``
+    (None = all rows in order)."""
+
+    node: str
+    start: int
+    end: int
+    rows: Optional[torch.Tensor]
+
+
+class AbsGradStrategy:
+    def __init__(self, config: DensifyConfig, scene_radius: float) -> None:
+        self.config = config
+        self.scene_radius = scene_radius
+        self.state: dict[str, dict[str, torch.Tensor]] = {}
+
+    def _node_state(self, name: str, node: Node) -> dict[str, torch.Tensor]:
+        st = self.state.get(name)
+        n = node.num_gaussians
+        if st is None or st["grad2d"].shape[0] != n:
+            dev = node.gaussian_params["means"].device
+            st = {"grad2d": torch.zeros(n, device=dev), "count": torch.zeros(n, device=dev)}
+            self.state[name] = st
+        return st
+
+    @torch.no_grad()
+    def accumulate(self, nodes: dict[str, Node], slices: list[NodeSlice], absgrad2d: torch.Tensor,
+                   radii: torch.Tensor, width: int, height: int) -> None:
+        """Add one rendered view's AbsGrad (M,2) and radii (M,) to the per-node statistics."""
+        scale = torch.tensor([width / 2.0, height / 2.0], device=absgrad2d.device)
+        norms = (absgrad2d * scale).norm(dim=-1)
+        visible = radii > 0
+        for sl in slices:
+            node = nodes[sl.node]
+            if node.num_gaussians == 0:
+                continue
+            st = self._node_state(sl.node, node)
+            g, v = norms[sl.start : sl.end], visible[sl.start : sl.end].float()
+            if sl.rows is None:
+                st["grad2d"] += g * v
+                st["count"] += v
+            else:
+                st["grad2d"].index_add_(0, sl.rows, g * v)
+                st["count"].index_add_(0, sl.rows, v)
+
+    def step(self, nodes: dict[str, Node], optimizers: Optimizers, step: int) -> dict[str, int]:
+        """Refine / reset at the scheduled steps. Returns counts of what was done."""
+        c = self.config
+        report = {"grown": 0, "pruned": 0}
+        if step >= c.refine_start and step % c.refine_every == 0 and step > 0:
+            for name, node in nodes.items():
+                if node.num_gaussians == 0 or name not in self.state:
+                    continue
+                if step < c.refine_stop:
+                    report["grown"] += self._grow(name, node, optimizers)
+                report["pruned"] += self._prune(name, node, optimizers, step)
+                self.state.pop(name, None)
+        if c.reset_every > 0 and step > 0 and step % c.reset_every == 0:
+            for name, node in nodes.items():
+                if node.num_gaussians:
+                    self._reset_opacity(name, node, optimizers)
+        return report
+
+    @torch.no_grad()
+    def _grow(self, name: str, node: Node, optimizers: Optimizers) -> int:
+        c = self.config
+        st = self.state[name]
+        avg = st["grad2d"] / st["count"].clamp_min(1)
+        high = avg > c.grad_threshold
+        room = c.max_gaussians - node.num_gaussians
+        if room <= 0:
+            return 0
+        if int(high.sum()) > room:
+            keep = torch.topk(torch.where(high, avg, torch.zeros_like(avg)), room).indices
+            high = torch.zeros_like(high)
+            high[keep] = True
+        max_scale = torch.exp(node.gaussian_params["scales"].max(dim=-1).values)
+        small = max_scale <= c.scale_threshold * self.scene_radius
+        clone, split = high & small, high & ~small
+        n_clone, n_split = int(clone.sum()), int(split.sum())
+        if n_clone:
+            _duplicate(name, node, optimizers, clone)
+        if n_split:
+            split = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool, device=split.device)])
+            _split(name, node, optimizers, split)
+        return n_clone + n_split
+
+    @torch.no_grad()
+    def _prune(self, name: str, node: Node, optimizers: Optimizers, step: int) -> int:
+        c = self.config
+        p = node.gaussian_params
+        prune = torch.sigmoid(p["opacities"]) < c.prune_opacity
+        if c.reset_every > 0 and step > c.reset_every:
+            prune |= torch.exp(p["scales"]).max(dim=-1).values > c.prune_scale * self.scene_radius
+        for k in p.keys():
+            prune |= ~torch.isfinite(p[k].reshape(p[k].shape[0], -1)).all(dim=1)
+        extra = node.extra_prune_mask()
+        if extra is not None:
+            prune |= extra
+        n = int(prune.sum())
+        if n:
+            keep = ~prune
+            optimizers.replace_gaussian_rows(name, node, lambda k, t: t[keep], lambda k, s: s[keep])
+        return n
+
+    @torch.no_grad()
+    def _reset_opacity(self, name: str, node: Node, optimizers: Optimizers) -> None:
+        limit = math.log(2 * self.config.prune_opacity / (1 - 2 * self.config.prune_opacity))
+
+        def param_fn(k, t):
+            return torch.clamp_max(t, limit) if k == "opacities" else t
+
+        def state_fn(k, s):
+            return torch.zeros_like(s) if k == "opacities" else s
+
+        optimizers.replace_gaussian_rows(name, node, param_fn, state_fn)
+
+    def state_dict(self) -> dict:
+        return {"state": {k: {n: t.clone() for n, t in v.items()} for k, v in self.state.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.state = {k: dict(v) for k, v in state["state"].items()}
+
+
+def _append_zeros(s: torch.Tensor, n: int) -> torch.Tensor:
+    return torch.cat([s, s.new_zeros((n, *s.shape[1:]))])
+
+
+def _duplicate(name: str, node: Node, optimizers: Optimizers, mask: torch.Tensor) -> None:
+    n = int(mask.sum())
+    optimizers.replace_gaussian_rows(
+        name, node, lambda k, t: torch.cat([t, t[mask]]), lambda k, s: _append_zeros(s, n)
+    )
+
+
+def _split(name: str, node: Node, optimizers: Optimizers, mask: torch.Tensor) -> None:
+    """Replace each selected Gaussian by two samples from it with scales / 1.6."""
+    p = node.gaussian_params
+    n = int(mask.sum())
+    scales = torch.exp(p["scales"][mask])  # (n, 3)
+    R = quat_to_rotmat(p["quats"][mask])  # (n, 3, 3)
+    samples = torch.randn(2, n, 3, device=scales.device) * scales
+    offsets = torch.einsum("nij,bnj->bni", R, samples).reshape(2 * n, 3)
+    keep = ~mask
+
+    def param_fn(k, t):
+        sel = t[mask]
+        rep = sel.repeat(2, *([1] * (t.ndim - 1)))
+        if k == "means":
+            rep = rep + offsets
+        elif k == "scales":
+            rep = rep - math.log(1.6)
+        return torch.cat([t[keep], rep])
+
+    optimizers.replace_gaussian_rows(name, node, param_fn, lambda k, s: _append_zeros(s[keep], 2 * n))
