@@ -1,0 +1,38 @@
+# Set-up, demo and tests. Everything installs into $(VENV); nothing else is touched.
+#   make demo   create the venv, install torch + omnire + every plugin, train on the demo scene
+#   make test   same install, then the test suite
+# Override TORCH_SPEC for another torch (e.g. TORCH_SPEC="torch==2.5.1"); the default is the
+# CPU build this project is developed against. It is also written to a pip constraint file
+# so that no plugin can pull a different (multi-GB CUDA) torch.
+PYTHON ?= python3
+VENV ?= .venv
+TORCH_SPEC ?= torch==2.13.0
+DEMO_METHOD ?= 3dgs
+DEMO_STEPS ?= 1500
+DEMO_ARGS ?=
+BIN := $(VENV)/bin
+PLUGIN_DIRS := $(sort $(dir $(wildcard plugins/*/pyproject.toml dataparsers/*/pyproject.toml)))
+STAMP := $(VENV)/.omnire-installed
+
+.PHONY: install demo test clean-venv
+
+$(STAMP): pyproject.toml $(wildcard plugins/*/pyproject.toml dataparsers/*/pyproject.toml) Makefile
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet "$(TORCH_SPEC)"
+	echo "$(TORCH_SPEC)" > $(VENV)/torch-constraint.txt
+	$(BIN)/pip install --quiet "setuptools>=64" wheel
+	$(BIN)/pip install --quiet --no-build-isolation -c $(VENV)/torch-constraint.txt \
+		-e ".[test,bench]" $(foreach d,$(PLUGIN_DIRS),-e $(d))
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: install
+	$(BIN)/omnire train $(DEMO_METHOD) pandaset --data data/demo/pandaset_002 \
+		--trainer.max-steps $(DEMO_STEPS) --trainer.output-dir outputs/demo $(DEMO_ARGS)
+
+test: install
+	$(BIN)/python -m pytest
+
+clean-venv:
+	rm -rf $(VENV)

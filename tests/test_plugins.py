@@ -1,0 +1,125 @@
+"""Plugin system: built-ins through the hooks, real entry-point plugins installed from a
+separate directory (pip), isolation of broken plugins, strict mode, blocking by name."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from omnire.plugins import PluginLoadError, load_plugins
+
+from scene_helpers import DEMO_SCENE
+
+OMNIRE = [sys.executable, "-m", "omnire.cli"]
+
+
+def test_builtins_register_through_hooks():
+    plugins = load_plugins(entry_points=False)
+    assert "3dgs" in plugins.methods and "background" in plugins.node_types
+    assert {"l1", "dssim", "depth", "opacity"} <= set(plugins.losses.names())
+    assert plugins.methods.provenance("3dgs").distribution == "omnire"
+    assert {"train", "eval", "render", "plugins", "bench"} <= set(plugins.commands.names())
+
+
+def _write_dist(root: Path, dist: str, module: str, body: str) -> Path:
+    d = root / dist
+    (d / module).mkdir(parents=True)
+    (d / "pyproject.toml").write_text(textwrap.dedent(f"""
+        [build-system]
+        requires = ["setuptools>=64"]
+        build-backend = "setuptools.build_meta"
+        [project]
+        name = "{dist}"
+        version = "0.0.7"
+        [project.entry-points.omnire]
+        {module} = "{module}.plugin"
+        [tool.setuptools]
+        packages = ["{module}"]
+    """))
+    (d / module / "__init__.py").write_text("")
+    (d / module / "plugin.py").write_text(textwrap.dedent(body))
+    return d
+
+
+GOOD = '''
+    from omnire.hookspecs import hookimpl
+    from omnire.registry import LossSpec, MethodSpec
+    from omnire.builtins import gs3d_method
+
+
+    def tv(ctx):
+        d = ctx.depth
+        return (d[1:] - d[:-1]).abs().mean()
+
+
+    @hookimpl
+    def omnire_register_losses(registry):
+        registry.register(LossSpec("tiny_tv", "depth total variation (test plugin)", tv))
+
+
+    @hookimpl
+    def omnire_register_methods(registry):
+        def preset():
+            m = gs3d_method()
+            m.loss_weights = {"l1": 1.0, "tiny_tv": 0.01}
+            return m
+        registry.register(MethodSpec("tiny3dgs", "3dgs with a TV loss (test plugin)", preset))
+'''
+
+BROKEN = '''
+    raise ImportError("this plugin is broken on purpose")
+'''
+
+
+@pytest.fixture(scope="module")
+def installed_test_plugins(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dists")
+    dists = [_write_dist(root, "omnire-test-tiny", "omnire_test_tiny", GOOD),
+             _write_dist(root, "omnire-test-broken", "omnire_test_broken", BROKEN)]
+    pip = [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation"]
+    subprocess.run(pip + [str(d) for d in dists], check=True)
+    try:
+        yield
+    finally:
+        subprocess.run([sys.executable, "-m", "pip", "uninstall", "--quiet", "-y", "omnire-test-tiny",
+                        "omnire-test-broken"], check=True)
+
+
+def run(args, env=None, timeout=600):
+    e = dict(os.environ, COLUMNS="200", **(env or {}))
+    return subprocess.run(OMNIRE + args, capture_output=True, text=True, env=e, timeout=timeout)
+
+
+def test_installed_plugin_is_listed_and_broken_one_reported(installed_test_plugins):
+    out = run(["plugins"])
+    assert out.returncode == 0, out.stderr
+    assert "tiny3dgs" in out.stdout and "tiny_tv" in out.stdout
+    assert "omnire-test-tiny" in out.stdout and "0.0.7" in out.stdout
+    assert "omnire-test-broken" in out.stdout and "broken on purpose" in out.stdout
+
+
+def test_strict_mode_and_blocking(installed_test_plugins):
+    out = run(["--strict", "plugins"])
+    assert out.returncode == 3 and "omnire-test-broken" in out.stderr
+    out = run(["plugins"], env={"OMNIRE_STRICT_PLUGINS": "1", "OMNIRE_DISABLE_PLUGINS": "omnire-test-broken"})
+    assert out.returncode == 0 and "tiny3dgs" in out.stdout and "omnire-test-broken" not in out.stdout
+    with pytest.raises(PluginLoadError, match="omnire-test-broken"):
+        load_plugins(strict=True)
+    plugins = load_plugins(disabled={"omnire_test_tiny"})
+    assert "tiny3dgs" not in plugins.methods
+
+
+@pytest.mark.skipif(not DEMO_SCENE.is_dir(), reason="demo scene not in this checkout")
+def test_plugin_method_selected_on_cli_despite_broken_plugin(installed_test_plugins, tmp_path):
+    out = run(["train", "tiny3dgs", "pandaset", "--data", str(DEMO_SCENE), "--end-frame", "4", "--scale", "0.25",
+               "--method.rasterizer", "torch", "--method.nodes.background.max-lidar-points", "3000",
+               "--method.nodes.background.num-far-points", "300", "--trainer.max-steps", "3",
+               "--trainer.output-dir", str(tmp_path), "--trainer.run-name", "r", "--trainer.no-progress"])
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "omnire-test-broken" in out.stderr  # reported, not fatal
+    metrics = (tmp_path / "r" / "metrics.jsonl").read_text()
+    assert "tiny_tv" in metrics
