@@ -68,47 +68,60 @@ def lidar_points_for_init(scene, frames: np.ndarray, excluded_tracks: list) -> n
     return np.concatenate(chunks) if chunks else np.zeros((0, 3))
 
 
+def init_background_params(config: BackgroundConfig, context: NodeContext) -> dict[str, torch.Tensor]:
+    """Raw Gaussian parameters for a static scene: LiDAR of the training frames (without
+    points in the boxes of actors other nodes model), voxel-downsampled and capped, or
+    random frustum points without LiDAR, plus a far shell; coloured from the images; scales
+    from nearest neighbours. Shared by every node that starts from the static scene."""
+    scene = context.scene
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
+    pts = lidar_points_for_init(scene, scene.train_frames, context.excluded_tracks)
+    cams = np.stack([c.cam_to_world[f, :3, 3] for c in scene.cameras for f in scene.train_frames])
+    center = cams.mean(0)
+    if len(pts):
+        pts = voxel_downsample(pts, config.voxel_size)
+        if len(pts) > config.max_lidar_points:
+            pts = pts[rng.choice(len(pts), config.max_lidar_points, replace=False)]
+    else:
+        pts = _frustum_points(scene, config.num_random_points_without_lidar, rng)
+    ground = np.percentile(pts[:, 2], 5) if len(pts) else center[2] - 2.0
+    far = far_shell(center, max(context.scene_radius, 30.0) * 2.0, config.num_far_points, rng, min_z=ground)
+    all_pts = np.concatenate([pts, far]).astype(np.float32)
+    colours, _ = colour_from_images(all_pts, scene, context.images, scene.train_frames)
+    scales = knn_scales(all_pts)
+    params = init_gaussian_params(
+        to_tensor(all_pts), to_tensor(colours), to_tensor(scales), config.sh_degree, config.init_opacity, context.generator
+    )
+    return {k: v.to(context.device) for k, v in params.items()}
+
+
+def static_gaussian_lrs(config: BackgroundConfig, scene_radius: float) -> dict[str, tuple[float, Optional[float]]]:
+    """Learning rates of static-scene Gaussians (means scale with the scene radius)."""
+    c, r = config, scene_radius
+    return {
+        "means": (c.lr_means * r, c.lr_means_final * r),
+        "sh0": (c.lr_sh0, None),
+        "shN": (c.lr_shN, None),
+        "opacities": (c.lr_opacity, None),
+        "scales": (c.lr_scales, None),
+        "quats": (c.lr_quats, None),
+    }
+
+
 class BackgroundNode(Node):
     def __init__(self, config: BackgroundConfig, context: NodeContext, tracks: Optional[list] = None) -> None:
         super().__init__()
         self.config = config
         self.scene_radius = context.scene_radius
-        scene = context.scene
-        rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
-        pts = lidar_points_for_init(scene, scene.train_frames, context.excluded_tracks)
-        cams = np.stack([c.cam_to_world[f, :3, 3] for c in scene.cameras for f in scene.train_frames])
-        center = cams.mean(0)
-        if len(pts):
-            pts = voxel_downsample(pts, config.voxel_size)
-            if len(pts) > config.max_lidar_points:
-                pts = pts[rng.choice(len(pts), config.max_lidar_points, replace=False)]
-        else:
-            pts = _frustum_points(scene, config.num_random_points_without_lidar, rng)
-        ground = np.percentile(pts[:, 2], 5) if len(pts) else center[2] - 2.0
-        far = far_shell(center, max(context.scene_radius, 30.0) * 2.0, config.num_far_points, rng, min_z=ground)
-        all_pts = np.concatenate([pts, far]).astype(np.float32)
-        colours, _ = colour_from_images(all_pts, scene, context.images, scene.train_frames)
-        scales = knn_scales(all_pts)
-        params = init_gaussian_params(
-            to_tensor(all_pts), to_tensor(colours), to_tensor(scales), config.sh_degree, config.init_opacity, context.generator
-        )
-        for k, v in params.items():
-            self.gaussian_params[k] = torch.nn.Parameter(v.to(context.device))
+        for k, v in init_background_params(config, context).items():
+            self.gaussian_params[k] = torch.nn.Parameter(v)
 
     def gaussians_at(self, frame: int, time: float):
         rows = None  # all rows: the background is present at every frame
         return Gaussians.from_params(self.gaussian_params), rows
 
     def gaussian_lrs(self):
-        c, r = self.config, self.scene_radius
-        return {
-            "means": (c.lr_means * r, c.lr_means_final * r),
-            "sh0": (c.lr_sh0, None),
-            "shN": (c.lr_shN, None),
-            "opacities": (c.lr_opacity, None),
-            "scales": (c.lr_scales, None),
-            "quats": (c.lr_quats, None),
-        }
+        return static_gaussian_lrs(self.config, self.scene_radius)
 
 
 def _frustum_points(scene, count: int, rng: np.random.Generator) -> np.ndarray:
