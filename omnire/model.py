@@ -106,15 +106,16 @@ class SceneModel(nn.Module):
         return self._K[view.camera], self._c2w[view.camera][view.frame], cam.width, cam.height
 
     def render(self, view: View, sh_degree: int = 3, camera_override: Optional[tuple] = None,
-               time_override: Optional[float] = None) -> RenderResult:
+               time_override: Optional[float] = None, step: Optional[int] = None) -> RenderResult:
         """Render ``view``. ``camera_override`` = (K, cam_to_world, width, height) renders the
-        scene at the view's frame from another camera (novel trajectories)."""
+        scene at the view's frame from another camera (novel trajectories). ``step`` is the
+        training step (None: the trained model, e.g. for evaluation)."""
         K, c2w, W, H = camera_override or self.camera(view)
         frame = view.frame
         time = float(self.scene.frame_timestamps[frame]) if time_override is None else time_override
         parts, slices, start = [], [], 0
         for name, node in self.gaussian_nodes().items():
-            out = node.gaussians_at(frame, time)
+            out = node.gaussians_at(frame, time, step)
             if out is None:
                 continue
             g, rows = out

@@ -151,7 +151,7 @@ class Trainer:
     def train_step(self) -> dict[str, float]:
         i = int(torch.randint(len(self.train_views), (1,), generator=self.sampler))
         view = self.train_views[i]
-        result = self.model.render(view, self.sh_degree())
+        result = self.model.render(view, self.sh_degree(), step=self.step)
         ctx = self.loss_context(view, result)
         terms: dict[str, torch.Tensor] = {}
         for name, (fn, weight) in self.losses.items():

@@ -116,7 +116,7 @@ class BackgroundNode(Node):
         for k, v in init_background_params(config, context).items():
             self.gaussian_params[k] = torch.nn.Parameter(v)
 
-    def gaussians_at(self, frame: int, time: float):
+    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None):
         rows = None  # all rows: the background is present at every frame
         return Gaussians.from_params(self.gaussian_params), rows
 

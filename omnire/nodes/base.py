@@ -8,9 +8,10 @@ Contract:
   per-Gaussian extras): every per-Gaussian tensor the densification strategy must clone,
   split and prune. ``gaussian_buffers``: per-Gaussian non-trainable tensors (e.g. owning
   instance), densified alongside.
-- ``gaussians_at(frame, time)`` returns the world-space Gaussians of the instances present
-  at that frame and the rows of ``gaussian_params`` they came from, or None (absent nodes
-  cost nothing).
+- ``gaussians_at(frame, time, step=None)`` returns the world-space Gaussians of the
+  instances present at that frame and the rows of ``gaussian_params`` they came from, or
+  None (absent nodes cost nothing). ``step`` is the training step (None outside training:
+  render the fully trained model); nodes use it for schedules such as warm-ups.
 - ``param_groups()`` lists learning-rate groups, per-Gaussian ones by key.
 """
 from __future__ import annotations
@@ -80,7 +81,7 @@ class Node(nn.Module):
     def num_gaussians(self) -> int:
         return int(self.gaussian_params["means"].shape[0]) if "means" in self.gaussian_params else 0
 
-    def gaussians_at(self, frame: int, time: float) -> Optional[tuple[Gaussians, torch.Tensor]]:
+    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None) -> Optional[tuple[Gaussians, Optional[torch.Tensor]]]:
         raise NotImplementedError
 
     def param_groups(self) -> list[ParamGroup]:
