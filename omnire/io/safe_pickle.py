@@ -90,6 +90,7 @@ _ALLOWED_IMPORTS = {
     ("builtins", "frozenset"),
     ("builtins", "complex"),
     ("collections", "OrderedDict"),
+    ("_codecs", "encode"),  # protocol-2 pickles store bytes as codecs.encode(str, "latin1")
     ("pandas", "DataFrame"),
     ("pandas", "Index"),
     ("pandas", "Series"),

@@ -1,0 +1,146 @@
+"""Small core units: Gaussians transforms and SH, restricted unpickling, scene validation,
+hold-out split, LiDAR projection."""
+import io
+import os
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from omnire.data.scene import SceneDataError, holdout_split
+from omnire.gaussians import Gaussians, eval_sh, num_sh_bases, rgb_to_sh0
+from omnire.geometry import quat_to_rotmat, rotmat_to_quat
+from omnire.io import safe_pickle
+from omnire.lidar import project_points
+
+
+def random_gaussians(n, degree=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return Gaussians(torch.randn(n, 3, generator=g, dtype=torch.float64), torch.randn(n, 4, generator=g, dtype=torch.float64),
+                     torch.randn(n, 3, generator=g, dtype=torch.float64), torch.randn(n, generator=g, dtype=torch.float64),
+                     torch.randn(n, 1, 3, generator=g, dtype=torch.float64),
+                     torch.randn(n, num_sh_bases(degree) - 1, 3, generator=g, dtype=torch.float64))
+
+
+def covariance(g: Gaussians) -> torch.Tensor:
+    R = quat_to_rotmat(g.quats)
+    S = torch.diag_embed(torch.exp(g.scales))
+    return R @ S @ S @ R.transpose(1, 2)
+
+
+def test_transform_rotates_means_and_covariances():
+    g = random_gaussians(7)
+    R = quat_to_rotmat(torch.tensor([0.3, -0.2, 0.9, 0.1], dtype=torch.float64))
+    t = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    h = g.transform(R, t)
+    torch.testing.assert_close(h.means, g.means @ R.T + t)
+    torch.testing.assert_close(covariance(h), R @ covariance(g) @ R.T)
+    # per-Gaussian rotations
+    Rs = quat_to_rotmat(torch.randn(7, 4, dtype=torch.float64))
+    h = g.transform(Rs, t.expand(7, 3))
+    torch.testing.assert_close(covariance(h), Rs @ covariance(g) @ Rs.transpose(1, 2))
+    torch.testing.assert_close(quat_to_rotmat(rotmat_to_quat(Rs)), Rs)
+
+
+def test_cat_pads_sh_bands():
+    a, b = random_gaussians(3, degree=3), random_gaussians(2, degree=1)
+    c = Gaussians.cat([a, b])
+    assert len(c) == 5 and c.shN.shape == (5, 15, 3)
+    assert torch.count_nonzero(c.shN[3:, 3:]) == 0
+
+
+def test_sh_degree0_is_colour_and_bands_are_orthonormal():
+    rgb = torch.rand(4, 3, dtype=torch.float64)
+    coeffs = rgb_to_sh0(rgb)
+    dirs = torch.nn.functional.normalize(torch.randn(4, 3, dtype=torch.float64), dim=-1)
+    torch.testing.assert_close(eval_sh(0, coeffs, dirs) + 0.5, rgb)
+    # Monte Carlo orthonormality of the 16 real SH basis functions over the sphere
+    n = 200_000
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64), dim=-1)
+    basis = torch.stack([eval_sh(3, torch.eye(16, dtype=torch.float64)[i].reshape(1, 16, 1).expand(n, 16, 1), d)[:, 0]
+                         for i in range(16)], 1)
+    gram = basis.T @ basis * (4 * np.pi / n)
+    torch.testing.assert_close(gram, torch.eye(16, dtype=torch.float64), atol=0.03, rtol=0)
+
+
+class _Evil:
+    def __reduce__(self):
+        return (os.system, ("echo pwned",))
+
+
+def test_restricted_unpickler_refuses_code(tmp_path):
+    p = tmp_path / "evil.pkl"
+    p.write_bytes(pickle.dumps(_Evil()))
+    with pytest.raises(safe_pickle.UnsafePickleError, match="evil.pkl.*system"):
+        safe_pickle.load(p)
+    ok = tmp_path / "ok.pkl"
+    ok.write_bytes(pickle.dumps({"a": np.arange(3), "b": [1.5, "x"]}))
+    out = safe_pickle.load(ok)
+    assert out["a"].tolist() == [0, 1, 2] and out["b"] == [1.5, "x"]
+    bad = tmp_path / "bad.pkl"
+    bad.write_bytes(b"\x80\x04garbage")
+    with pytest.raises(pickle.UnpicklingError, match="bad.pkl"):
+        safe_pickle.load(bad)
+
+
+def test_chumpy_and_sparse_standins(tmp_path):
+    """SMPL pickles made with chumpy/scipy: build such a pickle by hand (no chumpy needed)."""
+    class Ch:  # stands for chumpy.ch.Ch in the stream
+        pass
+
+    Ch.__module__, Ch.__qualname__ = "chumpy.ch", "Ch"
+    obj = Ch.__new__(Ch)
+    obj.__dict__ = {"x": np.ones((2, 3))}
+    buf = io.BytesIO()
+
+    class P(pickle.Pickler):
+        def reducer_override(self, o):
+            if isinstance(o, Ch):
+                return (Ch, (), o.__dict__)
+            return NotImplemented
+
+    import sys
+    import types
+
+    fake, parent = types.ModuleType("chumpy.ch"), types.ModuleType("chumpy")
+    fake.Ch, parent.ch = Ch, fake
+    sys.modules.update({"chumpy": parent, "chumpy.ch": fake})
+    try:
+        P(buf, protocol=2).dump({"shapedirs": obj})
+    finally:
+        del sys.modules["chumpy.ch"], sys.modules["chumpy"]
+    p = tmp_path / "smpl.pkl"
+    p.write_bytes(buf.getvalue())
+    out = safe_pickle.load(p)
+    assert isinstance(out["shapedirs"], np.ndarray) and out["shapedirs"].shape == (2, 3)
+
+
+def test_holdout_split_matches_paper():
+    train, test = holdout_split(35, 10)
+    assert test.tolist() == [10, 20, 30] and len(train) == 32
+    assert len(holdout_split(5, 0)[1]) == 0
+
+
+def test_scene_validation_names_the_field(tiny_scene):
+    tiny_scene.tracks[0].poses[1, 0, 3] = np.nan
+    with pytest.raises(SceneDataError, match="car-1.*poses"):
+        tiny_scene.validate()
+    tiny_scene.tracks[0].poses[1, 0, 3] = 0
+    tiny_scene.cameras[0].intrinsics = np.eye(4)
+    with pytest.raises(SceneDataError, match="cam0.*intrinsics.*expected \\(3, 3\\)"):
+        tiny_scene.validate()
+
+
+def test_lidar_projection_brute_force():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([-5, -5, 1], [5, 5, 20], size=(500, 3))
+    K = np.array([[50.0, 0, 20], [0, 50.0, 15], [0, 0, 1]])
+    idx, z = project_points(pts, np.eye(4), K, 40, 30)
+    best = {}
+    for p in pts:
+        u, v = int(np.floor(50 * p[0] / p[2] + 20)), int(np.floor(50 * p[1] / p[2] + 15))
+        if 0 <= u < 40 and 0 <= v < 30 and p[2] > 0.5:
+            k = v * 40 + u
+            best[k] = min(best.get(k, np.inf), p[2])
+    assert dict(zip(idx.tolist(), z.tolist())) == pytest.approx(best)

@@ -1,0 +1,114 @@
+"""AbsGrad densification: clone / split / prune / reset keep every per-Gaussian tensor and
+its Adam moments consistent."""
+import math
+
+import torch
+
+from omnire.nodes.base import Node, init_gaussian_params
+from omnire.optim import Optimizers, exponential_lr
+from omnire.strategy import AbsGradStrategy, DensifyConfig, NodeSlice
+
+
+class ToyNode(Node):
+    def __init__(self, n=6):
+        super().__init__()
+        g = torch.Generator().manual_seed(0)
+        params = init_gaussian_params(torch.randn(n, 3, generator=g), torch.rand(n, 3, generator=g),
+                                      torch.full((n,), 0.1), 1, 0.5, g)
+        params["velocity"] = torch.arange(n, dtype=torch.float32)[:, None].repeat(1, 3)
+        for k, v in params.items():
+            self.gaussian_params[k] = torch.nn.Parameter(v)
+        self.gaussian_buffers["owner"] = torch.arange(n)
+
+    def gaussian_lrs(self):
+        return {k: (1e-2, None) for k in self.gaussian_params.keys()}
+
+
+def setup(n=6):
+    node = ToyNode(n)
+    opt = Optimizers({"toy": node}, max_steps=100)
+    # one real optimiser step so Adam has moments to carry along
+    sum((p ** 2).sum() for p in node.gaussian_params.values()).backward()
+    opt.step(0)
+    opt.zero_grad()
+    return node, opt
+
+
+def lengths(node, opt):
+    out = {k: p.shape[0] for k, p in node.gaussian_params.items()}
+    out.update({k: b.shape[0] for k, b in node.gaussian_buffers.items()})
+    for group in opt.optimizers["toy"].param_groups:
+        p = group["params"][0]
+        st = opt.optimizers["toy"].state[p]
+        out[group["name"] + ".exp_avg"] = st["exp_avg"].shape[0]
+        assert p is node.gaussian_params[group["name"]]
+    return set(out.values())
+
+
+def test_clone_split_prune_keep_tensors_consistent():
+    node, opt = setup(6)
+    cfg = DensifyConfig(refine_start=0, refine_every=1, reset_every=0, grad_threshold=0.1, scale_threshold=0.5)
+    strat = AbsGradStrategy(cfg, scene_radius=1.0)
+    with torch.no_grad():
+        node.gaussian_params["scales"][:3] = math.log(0.1)  # small -> clone
+        node.gaussian_params["scales"][3:] = math.log(2.0)  # large -> split
+        node.gaussian_params["opacities"][5] = -10.0  # prune (after split copies it)
+    absgrad = torch.tensor([[1.0, 1.0], [1e-5, 0], [1.0, 0], [1.0, 1.0], [0, 1e-6], [1.0, 1.0]])
+    strat.accumulate({"toy": node}, [NodeSlice("toy", 0, 6, None)], absgrad, torch.ones(6, dtype=torch.int32), 2, 2)
+    means_before = node.gaussian_params["means"].detach().clone()
+    velocity_before = node.gaussian_params["velocity"].detach().clone()
+    report = strat.step({"toy": node}, opt, 1)
+    # grown: 2 clones (rows 0, 2) + 2 splits (rows 3, 5); pruned: both halves of row 5
+    assert report == {"grown": 4, "pruned": 2}
+    assert lengths(node, opt) == {6 + 2 + 2 - 2}
+    owners = node.gaussian_buffers["owner"].tolist()
+    assert sorted(owners) == [0, 0, 1, 2, 2, 3, 3, 4]
+    # split halves: scale / 1.6, velocity copied from the parent
+    for i, o in enumerate(owners):
+        if o == 3:
+            assert torch.allclose(node.gaussian_params["scales"][i], torch.full((3,), math.log(2.0 / 1.6)))
+            assert torch.equal(node.gaussian_params["velocity"][i], velocity_before[3])
+    # clones are exact copies of their parent
+    idx = [i for i, o in enumerate(owners) if o == 0]
+    assert torch.equal(node.gaussian_params["means"][idx[0]], node.gaussian_params["means"][idx[1]])
+    assert torch.equal(node.gaussian_params["means"][idx[0]], means_before[0])
+    # new rows have zero Adam moments
+    st = opt.optimizers["toy"].state[node.gaussian_params["means"]]
+    assert torch.count_nonzero(st["exp_avg"][-2:]) == 0
+    # training continues on the resized parameters
+    (node.gaussian_params["means"] ** 2).sum().backward()
+    opt.step(2)
+
+
+def test_opacity_reset_and_budget():
+    node, opt = setup(4)
+    strat = AbsGradStrategy(DensifyConfig(refine_start=0, refine_every=1000, reset_every=5, prune_opacity=0.005), 1.0)
+    strat.step({"toy": node}, opt, 5)
+    assert torch.sigmoid(node.gaussian_params["opacities"]).max() <= 0.0100001
+    st = opt.optimizers["toy"].state[node.gaussian_params["opacities"]]
+    assert torch.count_nonzero(st["exp_avg"]) == 0
+    node, opt = setup(4)
+    strat = AbsGradStrategy(DensifyConfig(refine_start=0, refine_every=1, reset_every=0, grad_threshold=0.0,
+                                          max_gaussians=6), 1.0)
+    strat.accumulate({"toy": node}, [NodeSlice("toy", 0, 4, None)], torch.ones(4, 2), torch.ones(4), 2, 2)
+    strat.step({"toy": node}, opt, 1)
+    assert node.num_gaussians <= 6 + 2  # at most `room` Gaussians selected; splits add one each
+
+
+def test_accumulate_with_row_subsets():
+    node, _ = setup(5)
+    strat = AbsGradStrategy(DensifyConfig(), 1.0)
+    rows = torch.tensor([4, 1])
+    strat.accumulate({"toy": node}, [NodeSlice("toy", 0, 2, rows)], torch.tensor([[1.0, 0], [0, 2.0]]),
+                     torch.tensor([1, 1]), 4, 2)
+    st = strat.state["toy"]
+    assert st["count"].tolist() == [0, 1, 0, 0, 1]
+    assert torch.allclose(st["grad2d"], torch.tensor([0, 2.0, 0, 0, 2.0]))
+
+
+def test_exponential_lr_schedule():
+    assert math.isclose(exponential_lr(1e-2, 1e-4, 0, 100), 1e-2, rel_tol=1e-12)
+    assert math.isclose(exponential_lr(1e-2, 1e-4, 50, 100), 1e-3, rel_tol=1e-9)
+    assert math.isclose(exponential_lr(1e-2, 1e-4, 100, 100), 1e-4, rel_tol=1e-9)
+    assert exponential_lr(1e-2, None, 50, 100) == 1e-2
+    assert exponential_lr(1e-2, None, 5, 100, warmup_steps=10) == 5e-3
