@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from omnire.data.scene import View
-from omnire.metrics import depth_errors, psnr, ssim
+from omnire.metrics import chamfer_distance, depth_errors, psnr, ssim
 
 
 def _mean(values: list[float]) -> float:
@@ -25,34 +25,60 @@ def nearest_train_frame(frame: int, train_frames: np.ndarray) -> int:
     return int(train_frames[np.flatnonzero(d == d.min())[0]])
 
 
+REGIONS = ("full", "human", "vehicle")
+
+
+def backproject(z: torch.Tensor, pixels: torch.Tensor, width: int, K: torch.Tensor, cam_to_world: torch.Tensor) -> torch.Tensor:
+    """World points (P,3) at depths ``z`` (P,) (along the camera axis) through the centres of
+    flat ``pixels`` (P,) of an image ``width`` wide."""
+    W = width
+    u = (pixels % W).float() + 0.5
+    v = (pixels // W).float() + 0.5
+    p = torch.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1)
+    return p @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
+
+
 @torch.no_grad()
-def evaluate_views(trainer, views: list[View], with_copy_baseline: bool) -> dict:
-    psnrs, ssims, rmses, copy_psnrs, copy_ssims = [], [], [], [], []
-    t0 = time.perf_counter()
+def evaluate_views(trainer, views: list[View], with_copy_baseline: bool, max_depth: float = 80.0) -> dict:
+    """PSNR/SSIM per region (full image, human mask, vehicle mask), depth RMSE and Chamfer
+    distance at LiDAR pixels, render speed; with the copy-nearest-frame baseline."""
+    acc: dict[str, list[float]] = {}
+
+    def add(key: str, value: float) -> None:
+        acc.setdefault(key, []).append(value)
+
+    t_render = 0.0
     for view in views:
+        t0 = time.perf_counter()
         result = trainer.model.render(view, trainer.sh_degree())
+        t_render += time.perf_counter() - t0
         target = trainer.target(view)
-        psnrs.append(psnr(result.rgb, target))
-        ssims.append(ssim(result.rgb, target))
+        masks = {"full": None, "human": trainer.dynamic_masks.get(view, "human"),
+                 "vehicle": trainer.dynamic_masks.get(view, "vehicle")}
+        near = nearest_train_frame(view.frame, trainer.scene.train_frames) if with_copy_baseline else None
+        other = trainer.target(View(view.camera, near)) if with_copy_baseline else None
+        for region, mask in masks.items():
+            if mask is not None and not bool((mask > 0.5).any()):
+                continue  # region absent from this image: not counted
+            add(f"{region}_psnr", psnr(result.rgb, target, mask))
+            add(f"{region}_ssim", ssim(result.rgb, target, mask))
+            if other is not None:
+                add(f"copy_{region}_psnr", psnr(other, target, mask))
+                add(f"copy_{region}_ssim", ssim(other, target, mask))
         lidar = trainer.lidar.get(view)
         if lidar is not None:
-            rmses.append(depth_errors(result.depth, lidar[0], lidar[1])[0])
-        if with_copy_baseline:
-            near = nearest_train_frame(view.frame, trainer.scene.train_frames)
-            other = trainer.target(View(view.camera, near))
-            copy_psnrs.append(psnr(other, target))
-            copy_ssims.append(ssim(other, target))
-    seconds = time.perf_counter() - t0
-    out = {
-        "views": len(views),
-        "psnr": _mean(psnrs),
-        "ssim": _mean(ssims),
-        "depth_rmse": _mean(rmses),
-        "render_fps": len(views) / seconds if seconds > 0 else float("nan"),
-    }
-    if with_copy_baseline:
-        out["copy_nearest_psnr"] = _mean(copy_psnrs)
-        out["copy_nearest_ssim"] = _mean(copy_ssims)
+            pix, z = lidar
+            add("depth_rmse", depth_errors(result.depth, pix, z, max_depth)[0])
+            keep = (z < max_depth) & (result.alpha.reshape(-1)[pix] > 0.5)
+            if bool(keep.any()):
+                K, c2w, _, _ = trainer.model.camera(view)
+                W = result.depth.shape[1]
+                pred = backproject(result.depth.reshape(-1)[pix[keep]], pix[keep], W, K, c2w)
+                gt = backproject(z[keep], pix[keep], W, K, c2w)
+                add("depth_chamfer", chamfer_distance(pred, gt))
+    out = {"views": len(views), "render_fps": len(views) / t_render if t_render > 0 else float("nan")}
+    out.update({k: _mean(v) for k, v in sorted(acc.items())})
+    out["psnr"], out["ssim"] = out.get("full_psnr", float("nan")), out.get("full_ssim", float("nan"))
     return out
 
 
@@ -73,16 +99,27 @@ def evaluate_model(trainer) -> dict:
 
 
 def format_table(result: dict, title: str = "evaluation") -> "rich.table.Table":
+    """One row per split, columns in the paper's layout: full / human / vehicle PSNR and
+    SSIM, depth RMSE and Chamfer; held-out rows add the copy-nearest-frame baseline."""
     from rich.table import Table
 
     table = Table(title=title)
-    for col in ["split", "views", "PSNR", "SSIM", "depth RMSE (m)", "copy-nearest PSNR", "copy-nearest SSIM"]:
+    cols = ["split", "views", "PSNR", "SSIM", "human PSNR", "human SSIM", "vehicle PSNR", "vehicle SSIM",
+            "depth RMSE", "Chamfer"]
+    for col in cols:
         table.add_column(col)
-    for split, key in [("reconstruction (train)", "reconstruction"), ("novel view (held-out)", "novel_view")]:
-        r = result.get(key)
+
+    def f(r, k, d=2):
+        v = r.get(k, float("nan"))
+        return "-" if v != v else f"{v:.{d}f}"
+
+    rows = [("reconstruction", result.get("reconstruction"), ""), ("novel view", result.get("novel_view"), ""),
+            ("  copy nearest", result.get("novel_view"), "copy_")]
+    for name, r, prefix in rows:
         if not r:
             continue
-        table.add_row(split, str(r["views"]), f"{r['psnr']:.2f}", f"{r['ssim']:.3f}", f"{r['depth_rmse']:.2f}",
-                      f"{r['copy_nearest_psnr']:.2f}" if "copy_nearest_psnr" in r else "-",
-                      f"{r['copy_nearest_ssim']:.3f}" if "copy_nearest_ssim" in r else "-")
+        table.add_row(name, str(r["views"]), f(r, f"{prefix}full_psnr"), f(r, f"{prefix}full_ssim", 3),
+                      f(r, f"{prefix}human_psnr"), f(r, f"{prefix}human_ssim", 3),
+                      f(r, f"{prefix}vehicle_psnr"), f(r, f"{prefix}vehicle_ssim", 3),
+                      "-" if prefix else f(r, "depth_rmse"), "-" if prefix else f(r, "depth_chamfer", 3))
     return table

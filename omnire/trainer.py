@@ -24,6 +24,7 @@ from omnire.data.scene import SceneData, View
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
 from omnire.lidar import LidarDepthTargets
 from omnire.losses import LossContext
+from omnire.masks import DynamicMasks, SkyMasks
 from omnire.method import MethodConfig
 from omnire.metrics import psnr, ssim
 from omnire.model import SceneModel
@@ -103,6 +104,10 @@ class Trainer:
         self.optimizers = Optimizers(dict(self.model.nodes), tc.max_steps)
         self.strategy = AbsGradStrategy(config.method.densify, self.model.scene_radius)
         self.lidar = LidarDepthTargets(self.scene, self.device)
+        self.dynamic_masks = DynamicMasks(self.scene, self.images, self.device)
+        has_env = any(m.is_environment for m in self.model.nodes.values())
+        # sky masks only feed the opacity loss, which only means something with a sky node
+        self.sky_masks = SkyMasks(self.scene, self.images, self.device) if has_env and "opacity" in self.losses else None
         self.sampler = torch.Generator().manual_seed(tc.seed + 1)
         self.train_views = self.scene.views(self.scene.train_frames)
         self.test_views = self.scene.views(self.scene.test_frames)
@@ -142,9 +147,15 @@ class Trainer:
     # ------------------------------------------------------------------ training
     def loss_context(self, view: View, result) -> LossContext:
         lidar = self.lidar.get(view) if "depth" in self.losses else None
+        weight = self.config.method.dynamic_pixel_weight
+        pixel_weights = None
+        if weight != 1.0 and self.scene.tracks:
+            pixel_weights = 1.0 + (weight - 1.0) * self.dynamic_masks.get(view, "all")
         return LossContext(
             rgb=result.rgb, depth=result.depth, alpha=result.alpha, target=self.target(view),
+            pixel_weights=pixel_weights,
             lidar_pixels=None if lidar is None else lidar[0], lidar_depth=None if lidar is None else lidar[1],
+            sky_mask=self.sky_masks.get(view) if self.sky_masks is not None else None,
             step=self.step,
         )
 

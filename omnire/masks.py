@@ -1,0 +1,171 @@
+"""Per-view masks: dynamic actors (human / vehicle) and sky.
+
+Both prefer masks the dataset provides (``CameraSequence.dynamic_mask_paths`` /
+``sky_mask_paths``) and otherwise derive them without any network weights:
+
+- dynamic masks: the 3D boxes of the actors present at the frame, projected (convex hull of
+  the 8 corners, clipped at the near plane) - coarse (boxes include some background) but
+  exact in where the actor is;
+- sky masks: pixels looking above the horizon and above the top-most LiDAR return of their
+  image column (LiDAR of the frame and its neighbours, columns smoothed), as the sky returns
+  nothing. Limits: buildings above the LiDAR's vertical field of view (+15 deg for
+  PandaSet's Pandar64) or beyond its range are taken for sky; overhanging trees and wires
+  are not resolved. It drives only the opacity loss (weight 0.05).
+
+Masks are cached per view as (H, W, 1) float tensors.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from omnire.data.images import ImageCache
+from omnire.data.scene import SceneData, View
+
+HUMAN_CATEGORIES = frozenset({"human", "cyclist"})
+"""Categories counted as humans in the human-region metrics (riders are people too)."""
+VEHICLE_CATEGORIES = frozenset({"vehicle"})
+
+_EDGES = [(0, 1), (0, 2), (0, 4), (1, 3), (1, 5), (2, 3), (2, 6), (3, 7), (4, 5), (4, 6), (5, 7), (6, 7)]
+_CORNERS = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)])
+
+
+def box_polygon(pose: np.ndarray, size: np.ndarray, w2c: np.ndarray, K: np.ndarray, near: float = 0.1) -> Optional[np.ndarray]:
+    """Image points (M,2) whose convex hull is the box's silhouette, or None if the box is
+    behind the camera. Edges crossing the near plane are clipped there."""
+    world = (_CORNERS * size) @ pose[:3, :3].T + pose[:3, 3]
+    cam = world @ w2c[:3, :3].T + w2c[:3, 3]
+    front = cam[:, 2] > near
+    if not front.any():
+        return None
+    pts = [cam[i] for i in range(8) if front[i]]
+    for a, b in _EDGES:
+        if front[a] != front[b]:
+            s = (near - cam[a, 2]) / (cam[b, 2] - cam[a, 2])
+            pts.append(cam[a] + s * (cam[b] - cam[a]))
+    pts = np.array(pts)
+    return pts[:, :2] / pts[:, 2:] @ K[:2, :2].T + K[:2, 2]
+
+
+def fill_convex(points: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Rasterise the convex hull of (M,2) points: (H,W) bool, pixel centres at +0.5."""
+    mask = np.zeros((height, width), dtype=bool)
+    if len(points) < 3:
+        return mask
+    hull = _convex_hull(points)
+    x0, y0 = np.clip(np.floor(points.min(0)).astype(int), 0, [width, height])
+    x1, y1 = np.clip(np.ceil(points.max(0)).astype(int) + 1, 0, [width, height])
+    if x1 <= x0 or y1 <= y0 or len(hull) < 3:
+        return mask
+    ys, xs = np.mgrid[y0:y1, x0:x1] + 0.5
+    inside = np.ones(xs.shape, dtype=bool)
+    for i in range(len(hull)):
+        (ax, ay), (bx, by) = hull[i], hull[(i + 1) % len(hull)]
+        inside &= (bx - ax) * (ys - ay) - (by - ay) * (xs - ax) >= 0
+    mask[y0:y1, x0:x1] = inside
+    return mask
+
+
+def _convex_hull(points: np.ndarray) -> np.ndarray:
+    """Counter-clockwise (in image coordinates, y down: clockwise on screen) hull, monotone chain."""
+    pts = sorted(map(tuple, points))
+    if len(pts) <= 2:
+        return np.array(pts)
+
+    def cross(o, a, b):
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    lower, upper = [], []
+    for p in pts:
+        while len(lower) >= 2 and cross(lower[-2], lower[-1], p) <= 0:
+            lower.pop()
+        lower.append(p)
+    for p in reversed(pts):
+        while len(upper) >= 2 and cross(upper[-2], upper[-1], p) <= 0:
+            upper.pop()
+        upper.append(p)
+    return np.array(lower[:-1] + upper[:-1])
+
+
+class DynamicMasks:
+    """Human / vehicle masks per view: dataset masks when given, else projected boxes."""
+
+    def __init__(self, scene: SceneData, images: ImageCache, device: torch.device) -> None:
+        self.scene, self.images, self.device = scene, images, device
+        self._cache: dict[tuple[View, str], torch.Tensor] = {}
+
+    def get(self, view: View, kind: str) -> torch.Tensor:
+        """(H, W, 1) float mask of ``kind`` in {"human", "vehicle", "all"}."""
+        key = (view, kind)
+        if key not in self._cache:
+            self._cache[key] = self._build(view, kind)
+        return self._cache[key]
+
+    def _build(self, view: View, kind: str) -> torch.Tensor:
+        cam = self.scene.cameras[view.camera]
+        given = (cam.dynamic_mask_paths or {}).get(kind)
+        if given is not None:
+            m = self.images.get(given[view.frame], cam.width, cam.height, channels=1)
+            return (m > 0.5).float().to(self.device)
+        cats = {"human": HUMAN_CATEGORIES, "vehicle": VEHICLE_CATEGORIES,
+                "all": HUMAN_CATEGORIES | VEHICLE_CATEGORIES}[kind]
+        mask = np.zeros((cam.height, cam.width), dtype=bool)
+        w2c = np.linalg.inv(cam.cam_to_world[view.frame])
+        for tr in self.scene.tracks:
+            if tr.category in cats and tr.present[view.frame]:
+                poly = box_polygon(tr.poses[view.frame], tr.size, w2c, cam.intrinsics)
+                if poly is not None:
+                    mask |= fill_convex(poly, cam.width, cam.height)
+        return torch.from_numpy(mask).float()[..., None].to(self.device)
+
+
+class SkyMasks:
+    """Sky masks per view: dataset masks when given, else the LiDAR-column heuristic."""
+
+    def __init__(self, scene: SceneData, images: ImageCache, device: torch.device, neighbour_frames: int = 2,
+                 column_smoothing: float = 0.02) -> None:
+        self.scene, self.images, self.device = scene, images, device
+        self.neighbour_frames = neighbour_frames
+        self.column_smoothing = column_smoothing
+        self._cache: dict[View, Optional[torch.Tensor]] = {}
+
+    def available(self) -> bool:
+        return all(c.sky_mask_paths is not None for c in self.scene.cameras) or self.scene.lidar is not None
+
+    def get(self, view: View) -> Optional[torch.Tensor]:
+        if view not in self._cache:
+            self._cache[view] = self._build(view)
+        return self._cache[view]
+
+    def _build(self, view: View) -> Optional[torch.Tensor]:
+        cam = self.scene.cameras[view.camera]
+        if cam.sky_mask_paths is not None:
+            m = self.images.get(cam.sky_mask_paths[view.frame], cam.width, cam.height, channels=1)
+            return (m > 0.5).float().to(self.device)
+        if self.scene.lidar is None:
+            return None
+        f = view.frame
+        lo, hi = max(0, f - self.neighbour_frames), min(self.scene.num_frames, f + self.neighbour_frames + 1)
+        pts = [p for p in self.scene.lidar.points[lo:hi] if p is not None]
+        W, H = cam.width, cam.height
+        c2w = cam.cam_to_world[f]
+        # elevation of each pixel's ray in the world (z up)
+        v, u = np.mgrid[0:H, 0:W] + 0.5
+        rays = np.stack([(u - cam.intrinsics[0, 2]) / cam.intrinsics[0, 0],
+                         (v - cam.intrinsics[1, 2]) / cam.intrinsics[1, 1], np.ones_like(u)], -1) @ c2w[:3, :3].T
+        up = rays[..., 2] / np.linalg.norm(rays, axis=-1) > np.sin(np.deg2rad(1.0))
+        top = np.full(W, H, dtype=np.int64)  # top-most LiDAR row per column (H = none)
+        if pts:
+            from omnire.lidar import project_points
+
+            idx, _ = project_points(np.concatenate(pts), c2w, cam.intrinsics, W, H)
+            np.minimum.at(top, idx % W, idx // W)
+        r = max(1, int(self.column_smoothing * W))
+        top_t = torch.from_numpy(top).float()[None, None]
+        # a column's boundary is the highest return among its neighbours (sparse LiDAR)
+        smoothed = -F.max_pool1d(-top_t, 2 * r + 1, stride=1, padding=r)[0, 0].numpy()
+        sky = up & (v < smoothed[None, :])
+        return torch.from_numpy(sky).float()[..., None].to(self.device)

@@ -1,0 +1,191 @@
+"""Shared machinery of actor nodes (rigid, SMPL, deformable): one node object holds every
+instance of its type; each Gaussian belongs to one instance (``instance`` buffer); each
+instance has per-frame box poses, optionally refined.
+
+Held-out frames never receive gradients, so their pose refinement is interpolated from the
+nearest training frames of the same instance (linear in the small axis-angle / translation
+deltas), and absent instances cost nothing: only the rows of instances present at the
+rendered frame are gathered and transformed.
+"""
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from typing import Optional
+
+import numpy as np
+import torch
+from torch import nn
+
+from omnire.data.scene import ActorTrack, SceneData
+from omnire.gaussians import Gaussians
+from omnire.geometry import quat_multiply, rotmat_to_quat
+from omnire.nodes.base import ParamGroup
+from omnire.pointcloud import points_in_box
+
+
+def axis_angle_to_rotmat(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) axis-angle -> (..., 3, 3), differentiable at 0 (Rodrigues with a Taylor
+    fallback for tiny angles)."""
+    theta2 = (v * v).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
+    small = theta2 < 1e-12
+    theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / torch.where(small, torch.ones_like(theta2), theta2))
+    x, y, z = v.unbind(-1)
+    zero = torch.zeros_like(x)
+    Kx = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*v.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=v.dtype, device=v.device).expand_as(Kx)
+    return eye + a * Kx + b * (Kx @ Kx)
+
+
+def usable_track(track: ActorTrack) -> bool:
+    """False (with a warning naming the track) for tracks a box-based node cannot model."""
+    if not np.all(np.isfinite(track.size)) or np.any(track.size <= 0):
+        warnings.warn(f"track {track.track_id!r} ({track.class_name}): box size {track.size.tolist()} is not "
+                      "positive; left to the background", stacklevel=2)
+        return False
+    if not track.present.any():
+        warnings.warn(f"track {track.track_id!r} ({track.class_name}): present in no frame; skipped", stacklevel=2)
+        return False
+    return True
+
+
+class ActorPoses(nn.Module):
+    """Per-instance, per-frame box-to-world poses with optional learnable refinement.
+
+    Buffers: base_R (I,F,3,3), base_t (I,F,3), present (I,F) bool. Parameters (when
+    refining): delta_rot (I,F,3) axis-angle applied in the box frame, delta_t (I,F,3) in
+    the world frame: pose = (R_base exp(delta_rot), t_base + delta_t).
+    """
+
+    def __init__(self, tracks: list[ActorTrack], train_frames: np.ndarray, refine: bool, device) -> None:
+        super().__init__()
+        I = len(tracks)
+        F = tracks[0].poses.shape[0] if tracks else 0
+        poses = np.stack([t.poses for t in tracks]) if tracks else np.zeros((0, F, 4, 4))
+        present = np.stack([t.present for t in tracks]) if tracks else np.zeros((0, F), bool)
+        poses = np.where(present[..., None, None], poses, np.eye(4))
+        self.register_buffer("base_R", torch.as_tensor(poses[..., :3, :3], dtype=torch.float32, device=device))
+        self.register_buffer("base_t", torch.as_tensor(poses[..., :3, 3], dtype=torch.float32, device=device))
+        self.register_buffer("present", torch.as_tensor(present, device=device))
+        self.refine = refine
+        self.delta_rot = nn.Parameter(torch.zeros(I, F, 3, device=device), requires_grad=refine)
+        self.delta_t = nn.Parameter(torch.zeros(I, F, 3, device=device), requires_grad=refine)
+        # For each frame: the training frames to interpolate refinement from (prev, next, weight).
+        train = np.asarray(sorted(int(f) for f in train_frames))
+        prev_idx, next_idx, w = [], [], []
+        for f in range(F):
+            if len(train) == 0 or f in set(train.tolist()):
+                prev_idx.append(f), next_idx.append(f), w.append(0.0)
+                continue
+            lo = train[train < f]
+            hi = train[train > f]
+            p = int(lo[-1]) if len(lo) else int(hi[0])
+            n = int(hi[0]) if len(hi) else int(lo[-1])
+            prev_idx.append(p), next_idx.append(n), w.append(0.0 if n == p else (f - p) / (n - p))
+        self.register_buffer("interp_prev", torch.tensor(prev_idx, dtype=torch.long, device=device), persistent=False)
+        self.register_buffer("interp_next", torch.tensor(next_idx, dtype=torch.long, device=device), persistent=False)
+        self.register_buffer("interp_w", torch.tensor(w, dtype=torch.float32, device=device), persistent=False)
+
+    @property
+    def num_instances(self) -> int:
+        return self.present.shape[0]
+
+    def at(self, frame: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Poses of the instances present at ``frame``: (ids (P,), R (P,3,3), t (P,3))."""
+        ids = torch.nonzero(self.present[:, frame]).flatten()
+        R, t = self.base_R[ids, frame], self.base_t[ids, frame]
+        if self.refine:
+            p, n, w = self.interp_prev[frame], self.interp_next[frame], self.interp_w[frame]
+            d_rot = (1 - w) * self.delta_rot[ids, p] + w * self.delta_rot[ids, n]
+            d_t = (1 - w) * self.delta_t[ids, p] + w * self.delta_t[ids, n]
+            R = R @ axis_angle_to_rotmat(d_rot)
+            t = t + d_t
+        return ids, R, t
+
+    def param_groups(self, lr_rot: float, lr_trans: float) -> list[ParamGroup]:
+        if not self.refine or self.num_instances == 0:
+            return []
+        return [ParamGroup("box_rotation", [self.delta_rot], lr_rot),
+                ParamGroup("box_translation", [self.delta_t], lr_trans)]
+
+
+def transform_instances(g: Gaussians, instance: torch.Tensor, ids: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> Gaussians:
+    """Move box-local Gaussians to the world: row i uses the pose of instance ``instance[i]``,
+    looked up in ``ids`` (P,) with poses R (P,3,3), t (P,3). Quaternions are computed once
+    per instance, not per Gaussian."""
+    lookup = torch.full((int(instance.max()) + 1 if len(instance) else 1,), -1, dtype=torch.long, device=ids.device)
+    lookup[ids] = torch.arange(len(ids), device=ids.device)
+    slot = lookup[instance]
+    q = rotmat_to_quat(R)  # (P, 4)
+    means = torch.einsum("nij,nj->ni", R[slot], g.means) + t[slot]
+    return dataclasses.replace(g, means=means, quats=quat_multiply(q[slot], g.quats))
+
+
+def rows_present(instance: torch.Tensor, present_ids: torch.Tensor, num_instances: int) -> torch.Tensor:
+    """Rows (M,) whose instance is in ``present_ids``."""
+    mask = torch.zeros(num_instances, dtype=torch.bool, device=instance.device)
+    mask[present_ids] = True
+    return torch.nonzero(mask[instance]).flatten()
+
+
+def box_local_lidar(scene: SceneData, track: ActorTrack, frames: np.ndarray, margin: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """LiDAR points inside the track's box over ``frames``, in box-local coordinates (N,3),
+    with the frame each came from (N,)."""
+    pts, src = [], []
+    if scene.lidar is None:
+        return np.zeros((0, 3)), np.zeros(0, int)
+    for f in frames:
+        f = int(f)
+        if not track.present[f] or scene.lidar.points[f] is None:
+            continue
+        p = scene.lidar.points[f]
+        inside = points_in_box(p, track.poses[f], track.size, margin)
+        if inside.any():
+            local = (p[inside] - track.poses[f][:3, 3]) @ track.poses[f][:3, :3]
+            pts.append(local)
+            src.append(np.full(len(local), f))
+    if not pts:
+        return np.zeros((0, 3)), np.zeros(0, int)
+    return np.concatenate(pts), np.concatenate(src)
+
+
+def visible_in_cameras(track: ActorTrack, scene: SceneData, frames: Optional[np.ndarray] = None, margin: float = 0.1) -> bool:
+    """True when the track's box centre or a corner projects inside some camera at some of
+    ``frames`` (default: training frames) in front of it. Actors no camera sees get no node."""
+    frames = scene.train_frames if frames is None else frames
+    corners = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)] + [[0, 0, 0]]) * track.size
+    for f in frames:
+        f = int(f)
+        if not track.present[f]:
+            continue
+        world = corners @ track.poses[f][:3, :3].T + track.poses[f][:3, 3]
+        for cam in scene.cameras:
+            w2c = np.linalg.inv(cam.cam_to_world[f])
+            p = world @ w2c[:3, :3].T + w2c[:3, 3]
+            front = p[:, 2] > 0.5
+            if not front.any():
+                continue
+            uv = p[front, :2] / p[front, 2:] @ cam.intrinsics[:2, :2].T + cam.intrinsics[:2, 2]
+            mw, mh = margin * cam.width, margin * cam.height
+            if np.any((uv[:, 0] > -mw) & (uv[:, 0] < cam.width + mw) & (uv[:, 1] > -mh) & (uv[:, 1] < cam.height + mh)):
+                return True
+    return False
+
+
+def colour_box_points(scene: SceneData, images, track: ActorTrack, local: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """Colours (N,3) of box-local points, each projected into the images of the frame it
+    came from (src (N,); -1 = use every frame the track is present in)."""
+    from omnire.pointcloud import colour_from_images
+
+    colours = np.full((len(local), 3), 0.5, dtype=np.float32)
+    for f in np.unique(src):
+        sel = src == f
+        frames = np.array([f]) if f >= 0 else np.intersect1d(track.frames(), scene.train_frames)
+        if len(frames) == 0:
+            continue
+        ref = int(frames[len(frames) // 2])
+        world = local[sel] @ track.poses[ref][:3, :3].T + track.poses[ref][:3, 3]
+        colours[sel], _ = colour_from_images(world, scene, images, np.array([ref]))
+    return colours

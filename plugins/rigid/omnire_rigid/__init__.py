@@ -1,0 +1,3 @@
+from omnire_rigid.node import RigidConfig, RigidNode
+
+__all__ = ["RigidConfig", "RigidNode"]

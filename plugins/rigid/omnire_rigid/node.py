@@ -1,0 +1,117 @@
+"""Rigid actor node: Gaussians in box-local space, moved by per-frame box poses.
+
+World Gaussians at frame t: G_world = T_i(t) (x) G_local for every instance i present at t
+(StreetGS / OmniRe rigid nodes). Initialised per instance from the LiDAR points inside the
+box over all training frames (accumulated in the box frame, voxel-downsampled, coloured from
+the frame each point was seen in) plus random points in the box. Box poses start from the
+tracks and are refined (on by default). Gaussians that drift out of their box are pruned.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import numpy as np
+import torch
+
+from omnire.gaussians import Gaussians
+from omnire.nodes.actors import ActorPoses, box_local_lidar, colour_box_points, rows_present, transform_instances
+from omnire.nodes.base import Node, NodeConfig, NodeContext, ParamGroup, init_gaussian_params
+from omnire.pointcloud import knn_scales, to_tensor, voxel_downsample
+
+
+@dataclasses.dataclass
+class RigidConfig(NodeConfig):
+    """Rigid actors (vehicles)."""
+
+    _target: type = dataclasses.field(default_factory=lambda: RigidNode)
+    voxel_size: float = 0.05
+    """Voxel edge (m) for the accumulated in-box LiDAR."""
+    max_points_per_instance: int = 6000
+    """Cap on LiDAR points per instance after downsampling."""
+    random_points_per_instance: int = 300
+    """Random points inside each box (covers surfaces LiDAR missed)."""
+    sh_degree: int = 3
+    """Highest SH degree."""
+    init_opacity: float = 0.1
+    """Initial opacity."""
+    refine_boxes: bool = True
+    """Learn per-frame box pose corrections (box refinement)."""
+    lr_box_rotation: float = 1e-5
+    """Box rotation refinement lr."""
+    lr_box_translation: float = 5e-4
+    """Box translation refinement lr."""
+    prune_outside: float = 0.5
+    """Prune Gaussians farther outside their box than this fraction of its half-size."""
+    lr_means: float = 1.6e-4
+    """Means lr (x scene radius) decaying to lr_means_final."""
+    lr_means_final: float = 1.6e-6
+    """Final means lr (x scene radius)."""
+    lr_sh0: float = 2.5e-3
+    """SH DC lr."""
+    lr_shN: float = 1.25e-4
+    """SH higher bands lr."""
+    lr_opacity: float = 0.05
+    """Opacity lr."""
+    lr_scales: float = 5e-3
+    """Log-scale lr."""
+    lr_quats: float = 1e-3
+    """Quaternion lr."""
+
+
+class RigidNode(Node):
+    def __init__(self, config: RigidConfig, context: NodeContext, tracks: list) -> None:
+        super().__init__()
+        self.config = config
+        self.scene_radius = context.scene_radius
+        scene = context.scene
+        rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
+        self.track_ids = [t.track_id for t in tracks]
+        self.poses = ActorPoses(tracks, scene.train_frames, config.refine_boxes, context.device)
+        points, colours, owners = [], [], []
+        for i, track in enumerate(tracks):
+            local, src = box_local_lidar(scene, track, scene.train_frames)
+            if len(local):
+                local = voxel_downsample(local, config.voxel_size)
+                src = np.full(len(local), -1)  # merged voxels: colour from every frame the box is seen in
+            if len(local) > config.max_points_per_instance:
+                local = local[rng.choice(len(local), config.max_points_per_instance, replace=False)]
+                src = src[: len(local)]
+            rand = (rng.random((config.random_points_per_instance, 3)) - 0.5) * track.size
+            local = np.concatenate([local, rand])
+            src = np.concatenate([src, np.full(len(rand), -1)])
+            colours.append(colour_box_points(scene, context.images, track, local, src))
+            points.append(local)
+            owners.append(np.full(len(local), i))
+        pts = np.concatenate(points).astype(np.float32)
+        scales = np.concatenate([np.minimum(knn_scales(p), 0.2) for p in points])
+        params = init_gaussian_params(to_tensor(pts), to_tensor(np.concatenate(colours)), to_tensor(scales),
+                                      config.sh_degree, config.init_opacity, context.generator)
+        for k, v in params.items():
+            self.gaussian_params[k] = torch.nn.Parameter(v.to(context.device))
+        self.gaussian_buffers["instance"] = torch.as_tensor(np.concatenate(owners), dtype=torch.long, device=context.device)
+        self.register_buffer("half_sizes", torch.as_tensor(np.stack([t.size for t in tracks]) / 2, dtype=torch.float32,
+                                                           device=context.device))
+
+    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None):
+        ids, R, t = self.poses.at(frame)
+        if len(ids) == 0:
+            return None  # absent actors cost nothing
+        instance = self.gaussian_buffers["instance"]
+        rows = rows_present(instance, ids, self.poses.num_instances)
+        g = Gaussians.from_params(self.gaussian_params, rows)
+        return transform_instances(g, instance[rows], ids, R, t), rows
+
+    def gaussian_lrs(self):
+        c, r = self.config, self.scene_radius
+        return {"means": (c.lr_means * r, c.lr_means_final * r), "sh0": (c.lr_sh0, None), "shN": (c.lr_shN, None),
+                "opacities": (c.lr_opacity, None), "scales": (c.lr_scales, None), "quats": (c.lr_quats, None)}
+
+    def param_groups(self) -> list[ParamGroup]:
+        return super().param_groups() + self.poses.param_groups(self.config.lr_box_rotation,
+                                                                 self.config.lr_box_translation)
+
+    @torch.no_grad()
+    def extra_prune_mask(self) -> torch.Tensor:
+        half = self.half_sizes[self.gaussian_buffers["instance"]]
+        return (self.gaussian_params["means"].abs() > half * (1 + self.config.prune_outside)).any(dim=-1)

@@ -1,0 +1,36 @@
+from omnire.hookspecs import hookimpl
+from omnire.registry import MethodSpec, NodeTypeSpec
+
+
+def _accepts(track, scene) -> bool:
+    from omnire.nodes.actors import usable_track, visible_in_cameras
+
+    return usable_track(track) and visible_in_cameras(track, scene)
+
+
+@hookimpl
+def omnire_register_node_types(registry) -> None:
+    from omnire_rigid.node import RigidConfig
+
+    registry.register(NodeTypeSpec("rigid", "rigid actors in box-local space with per-frame box poses (refined)",
+                                   RigidConfig, categories=frozenset({"vehicle"}), priority=10, accepts=_accepts))
+
+
+def streetgs_method():
+    """StreetGS as the OmniRe paper reimplements it: background + rigid vehicles + sky."""
+    from omnire.method import MethodConfig
+    from omnire.nodes.background import BackgroundConfig
+    from omnire_rigid.node import RigidConfig
+    from omnire_sky.node import SkyConfig
+
+    return MethodConfig(
+        nodes={"background": BackgroundConfig(), "rigid": RigidConfig(), "sky": SkyConfig()},
+        loss_weights={"l1": 0.8, "dssim": 0.2, "depth": 0.1, "opacity": 0.05},
+        dynamic_pixel_weight=5.0,
+    )
+
+
+@hookimpl
+def omnire_register_methods(registry) -> None:
+    registry.register(MethodSpec("streetgs", "StreetGS: background + rigid vehicles (box refinement) + sky",
+                                 streetgs_method))

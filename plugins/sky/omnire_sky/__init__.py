@@ -1,0 +1,3 @@
+from omnire_sky.node import SkyConfig, SkyNode, view_directions
+
+__all__ = ["SkyConfig", "SkyNode", "view_directions"]
