@@ -1,0 +1,96 @@
+"""Build (first use) and load the C++ extension.
+
+The extension is compiled with ``torch.utils.cpp_extension.load`` into a cache directory
+keyed by the source hash, compiler flags and torch version, so a rebuild happens only when
+one of them changes; later processes load the cached ``.so`` in milliseconds. Building takes
+about a minute on 2 cores. Any failure (no compiler, no AVX2 on this CPU, ...) is recorded
+once and reported by :func:`load_extension` as ``(None, reason)``.
+
+Environment: ``OMNIRE_EXTENSIONS_DIR`` overrides the cache root
+(default ``$XDG_CACHE_HOME/omnire/extensions`` or ``~/.cache/omnire/extensions``).
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import threading
+from pathlib import Path
+from types import ModuleType
+from typing import Optional
+
+log = logging.getLogger(__name__)
+
+SOURCE = Path(__file__).parent / "csrc" / "raster.cpp"
+# Portable flags: AVX2 + FMA (not -march=native, which ties the .so to one machine).
+# -ffp-contract=off keeps forward and backward bit-identical in their skip/stop decisions.
+CFLAGS = ["-O3", "-mavx2", "-mfma", "-fopenmp", "-ffp-contract=off", "-std=c++17"]
+LDFLAGS = ["-fopenmp"]
+
+_lock = threading.Lock()
+_state: dict[str, object] = {}
+
+
+def _cpu_supports_avx2() -> tuple[bool, str]:
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return True, ""  # cannot tell (non-Linux): let the build / first call decide
+    for line in flags.splitlines():
+        if line.startswith("flags"):
+            have = set(line.split(":", 1)[1].split())
+            missing = [f for f in ("avx2", "fma") if f not in have]
+            if missing:
+                return False, f"CPU lacks {', '.join(missing)} (the kernel is compiled with -mavx2 -mfma)"
+            return True, ""
+    return True, ""
+
+
+def cache_dir() -> Path:
+    root = os.environ.get("OMNIRE_EXTENSIONS_DIR")
+    if root:
+        return Path(root)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "omnire" / "extensions"
+
+
+def _build() -> ModuleType:
+    import torch
+    from torch.utils import cpp_extension
+
+    digest = hashlib.sha256()
+    digest.update(SOURCE.read_bytes())
+    digest.update(" ".join(CFLAGS + LDFLAGS).encode())
+    digest.update(torch.__version__.encode())
+    name = "omnire_raster_cpu_" + digest.hexdigest()[:12]
+    build_dir = cache_dir() / name
+    build_dir.mkdir(parents=True, exist_ok=True)
+    return cpp_extension.load(
+        name=name,
+        sources=[str(SOURCE)],
+        extra_cflags=CFLAGS,
+        extra_ldflags=LDFLAGS,
+        build_directory=str(build_dir),
+        verbose=False,
+    )
+
+
+def load_extension() -> tuple[Optional[ModuleType], str]:
+    """Return ``(module, "")`` or ``(None, reason)``; builds at most once per process."""
+    with _lock:
+        if "module" in _state:
+            return _state["module"], ""  # type: ignore[return-value]
+        if "error" in _state:
+            return None, str(_state["error"])
+        ok, reason = _cpu_supports_avx2()
+        if not ok:
+            _state["error"] = reason
+        else:
+            try:
+                _state["module"] = _build()
+                return _state["module"], ""  # type: ignore[return-value]
+            except Exception as exc:  # noqa: BLE001 - any build failure means "unavailable"
+                first = (str(exc).strip().splitlines() or [""])[-1][:300]
+                _state["error"] = f"C++ extension failed to build: {type(exc).__name__}: {first}"
+        log.warning("omnire cpu rasterizer unavailable: %s", _state["error"])
+        return None, str(_state["error"])

@@ -1,0 +1,831 @@
+// Native CPU Gaussian rasterizer for omnire: projection (EWA), tile binning + depth sort,
+// front-to-back compositing and a hand-written backward. Contract: omnire/rasterization.py.
+//
+// Two instantiations share one kernel body:
+//   float : pixels processed 8 at a time in an AVX2 register (VF8) with an inline exp;
+//   double: one pixel at a time (VD1), used by the float64 gradient checks.
+// Projection and its backward always run in double (cheap, O(N)), which keeps huge/tiny
+// scales and unnormalised quaternions well conditioned whatever the image dtype.
+//
+// Per-Gaussian record written by the forward and read by the pixel kernels (REC values):
+//   [mean2d x, mean2d y, conic a, conic b, conic c, opacity, depth z, ext x, ext y]
+// conic = inverse 2D covariance [[a, b], [b, c]]; ext = half-extent (pixels) of the ellipse
+// outside which alpha < 1/255 for sure, so skipping those pixels changes nothing.
+#include <torch/extension.h>
+
+#include <immintrin.h>
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <vector>
+
+namespace {
+
+constexpr int TILE = 16;
+constexpr int TPIX = TILE * TILE;
+constexpr int REC = 9;
+constexpr double ALPHA_MIN = 1.0 / 255.0;
+constexpr double ALPHA_MAX = 0.99;
+constexpr double T_MIN = 1e-4;
+constexpr double QUAT_EPS = 1e-12;
+
+// ---------------------------------------------------------------------------------------
+// Lane packs. V = values, M = lane mask.
+struct VF8 {
+  using S = float;
+  using V = __m256;
+  using M = __m256;
+  static constexpr int L = 8;
+  static V set1(float a) { return _mm256_set1_ps(a); }
+  static V iota() { return _mm256_setr_ps(0.f, 1.f, 2.f, 3.f, 4.f, 5.f, 6.f, 7.f); }
+  static V load(const float* p) { return _mm256_load_ps(p); }
+  static void store(float* p, V v) { _mm256_store_ps(p, v); }
+  static M load_mask(const float* p) { return _mm256_load_ps(p); }
+  static void store_mask(float* p, M m) { _mm256_store_ps(p, m); }
+  static M all_true() { return _mm256_castsi256_ps(_mm256_set1_epi32(-1)); }
+  static M none() { return _mm256_setzero_ps(); }
+  static M ge(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_GE_OQ); }
+  static M lt(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_LT_OQ); }
+  static M le(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_LE_OQ); }
+  static M mand(M a, M b) { return _mm256_and_ps(a, b); }
+  static M mandnot(M a, M b) { return _mm256_andnot_ps(b, a); }  // a & ~b
+  static int count(M m) { return __builtin_popcount(_mm256_movemask_ps(m)); }
+  static bool any(M m) { return _mm256_movemask_ps(m) != 0; }
+  static V keep(M m, V a) { return _mm256_and_ps(m, a); }  // a where m else 0
+  static V sel(M m, V a, V b) { return _mm256_blendv_ps(b, a, m); }
+  static V vmin(V a, V b) { return _mm256_min_ps(a, b); }
+  static V vabs(V a) { return _mm256_andnot_ps(_mm256_set1_ps(-0.f), a); }
+  static V fma(V a, V b, V c) { return _mm256_fmadd_ps(a, b, c); }
+  static float hsum(V v) {
+    __m128 lo = _mm256_castps256_ps128(v), hi = _mm256_extractf128_ps(v, 1);
+    lo = _mm_add_ps(lo, hi);
+    lo = _mm_add_ps(lo, _mm_movehl_ps(lo, lo));
+    lo = _mm_add_ss(lo, _mm_shuffle_ps(lo, lo, 1));
+    return _mm_cvtss_f32(lo);
+  }
+  // exp for x <= 0 (Cephes-style range reduction + degree-5 polynomial), ~1e-7 relative.
+  // Inputs below -87.3 are clamped (result ~1e-38, far below the 1/255 alpha threshold).
+  static V exp(V x) {
+    x = _mm256_max_ps(x, _mm256_set1_ps(-87.3f));
+    x = _mm256_min_ps(x, _mm256_set1_ps(88.0f));
+    V n = _mm256_round_ps(_mm256_mul_ps(x, _mm256_set1_ps(1.44269504088896341f)),
+                          _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    V r = _mm256_fnmadd_ps(n, _mm256_set1_ps(0.693359375f), x);
+    r = _mm256_fnmadd_ps(n, _mm256_set1_ps(-2.12194440e-4f), r);
+    V p = _mm256_set1_ps(1.9875691500e-4f);
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.3981999507e-3f));
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(8.3334519073e-3f));
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(4.1665795894e-2f));
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(1.6666665459e-1f));
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(5.0000001201e-1f));
+    V r2 = _mm256_mul_ps(r, r);
+    V y = _mm256_fmadd_ps(p, r2, _mm256_add_ps(r, _mm256_set1_ps(1.f)));
+    __m256i e = _mm256_slli_epi32(_mm256_add_epi32(_mm256_cvtps_epi32(n), _mm256_set1_epi32(127)), 23);
+    return _mm256_mul_ps(y, _mm256_castsi256_ps(e));
+  }
+};
+
+struct VD1 {
+  using S = double;
+  using V = double;
+  using M = bool;
+  static constexpr int L = 1;
+  static V set1(double a) { return a; }
+  static V iota() { return 0.0; }
+  static V load(const double* p) { return *p; }
+  static void store(double* p, V v) { *p = v; }
+  static M load_mask(const double* p) { return *p != 0.0; }
+  static void store_mask(double* p, M m) { *p = m ? 1.0 : 0.0; }
+  static M all_true() { return true; }
+  static M none() { return false; }
+  static M ge(V a, V b) { return a >= b; }
+  static M lt(V a, V b) { return a < b; }
+  static M le(V a, V b) { return a <= b; }
+  static M mand(M a, M b) { return a && b; }
+  static M mandnot(M a, M b) { return a && !b; }
+  static int count(M m) { return m ? 1 : 0; }
+  static bool any(M m) { return m; }
+  static V keep(M m, V a) { return m ? a : 0.0; }
+  static V sel(M m, V a, V b) { return m ? a : b; }
+  static V vmin(V a, V b) { return a < b ? a : b; }
+  static V vabs(V a) { return std::fabs(a); }
+  static V fma(V a, V b, V c) { return a * b + c; }
+  static double hsum(V v) { return v; }
+  static V exp(V x) { return std::exp(x); }
+};
+
+template <typename S> struct PackFor;
+template <> struct PackFor<float> { using P = VF8; };
+template <> struct PackFor<double> { using P = VD1; };
+
+// ---------------------------------------------------------------------------------------
+// Camera and per-Gaussian projection (double precision).
+struct Camera {
+  double R[9], t[3];
+  double fx, fy, cx, cy;
+  double lim_xp, lim_xn, lim_yp, lim_yn;  // clamp range of x/z, y/z for the Jacobian
+  int W, H;
+};
+
+Camera make_camera(const at::Tensor& viewmat, const at::Tensor& K, int W, int H) {
+  auto vm = viewmat.detach().to(at::kCPU, at::kDouble).contiguous();
+  auto k = K.detach().to(at::kCPU, at::kDouble).contiguous();
+  const double* v = vm.data_ptr<double>();
+  const double* kk = k.data_ptr<double>();
+  Camera c;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) c.R[i * 3 + j] = v[i * 4 + j];
+    c.t[i] = v[i * 4 + 3];
+  }
+  c.fx = kk[0];
+  c.fy = kk[4];
+  c.cx = kk[2];
+  c.cy = kk[5];
+  c.W = W;
+  c.H = H;
+  // Jacobian clamp as in gsplat: the visible FoV plus 15% of it on each side (1.3x total).
+  const double tan_x = 0.5 * W / c.fx, tan_y = 0.5 * H / c.fy;
+  c.lim_xp = (W - c.cx) / c.fx + 0.3 * tan_x;
+  c.lim_xn = c.cx / c.fx + 0.3 * tan_x;
+  c.lim_yp = (H - c.cy) / c.fy + 0.3 * tan_y;
+  c.lim_yn = c.cy / c.fy + 0.3 * tan_y;
+  return c;
+}
+
+struct Proj {
+  bool in_depth;   // near <= z <= far: mean2d defined
+  bool ok;         // conic defined and finite
+  double qn[4], qnorm, s[3];
+  double Rq[9], M[9], Sig3[6];  // Sig3: xx, xy, xz, yy, yz, zz
+  double t[3], u, v;            // camera-space mean, clamped x/z, y/z
+  bool u_clamped, v_clamped;
+  double T[6];                  // J * Rview (2x3)
+  double cov[3];                // 2D covariance a, b, c (with eps2d)
+  double det, conic[3];
+  double m2d[2];
+};
+
+inline double sym3(const double* s, int i, int j) {
+  static const int idx[3][3] = {{0, 1, 2}, {1, 3, 4}, {2, 4, 5}};
+  return s[idx[i][j]];
+}
+
+template <typename S>
+void project_one(const S* mean, const S* quat, const S* scale, const Camera& cam, double near,
+                 double far, double eps2d, Proj& p) {
+  double m[3] = {double(mean[0]), double(mean[1]), double(mean[2])};
+  for (int i = 0; i < 3; ++i)
+    p.t[i] = cam.R[i * 3] * m[0] + cam.R[i * 3 + 1] * m[1] + cam.R[i * 3 + 2] * m[2] + cam.t[i];
+  const double z = p.t[2];
+  p.in_depth = (z > near && z < far && z > 0.0);  // strictly inside, like the reference
+  p.ok = false;
+  if (!p.in_depth) return;
+  p.m2d[0] = cam.fx * p.t[0] / z + cam.cx;
+  p.m2d[1] = cam.fy * p.t[1] / z + cam.cy;
+  if (!std::isfinite(p.m2d[0]) || !std::isfinite(p.m2d[1])) {
+    p.in_depth = false;
+    return;
+  }
+
+  // Rotation of the normalised quaternion; |q| <= 1e-12 is the identity (zero gradient).
+  double q[4] = {double(quat[0]), double(quat[1]), double(quat[2]), double(quat[3])};
+  p.qnorm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  if (p.qnorm > QUAT_EPS) {
+    for (int i = 0; i < 4; ++i) p.qn[i] = q[i] / p.qnorm;
+  } else {
+    p.qn[0] = 1.0; p.qn[1] = p.qn[2] = p.qn[3] = 0.0;
+  }
+  const double w = p.qn[0], x = p.qn[1], y = p.qn[2], zq = p.qn[3];
+  double* R = p.Rq;
+  R[0] = 1 - 2 * (y * y + zq * zq); R[1] = 2 * (x * y - w * zq);     R[2] = 2 * (x * zq + w * y);
+  R[3] = 2 * (x * y + w * zq);     R[4] = 1 - 2 * (x * x + zq * zq); R[5] = 2 * (y * zq - w * x);
+  R[6] = 2 * (x * zq - w * y);     R[7] = 2 * (y * zq + w * x);     R[8] = 1 - 2 * (x * x + y * y);
+  for (int j = 0; j < 3; ++j) p.s[j] = double(scale[j]);
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) p.M[i * 3 + j] = R[i * 3 + j] * p.s[j];
+  // Sig3 = M M^T
+  int k = 0;
+  for (int i = 0; i < 3; ++i)
+    for (int j = i; j < 3; ++j, ++k)
+      p.Sig3[k] = p.M[i * 3] * p.M[j * 3] + p.M[i * 3 + 1] * p.M[j * 3 + 1] + p.M[i * 3 + 2] * p.M[j * 3 + 2];
+
+  const double ur = p.t[0] / z, vr = p.t[1] / z;
+  p.u = std::min(cam.lim_xp, std::max(-cam.lim_xn, ur));
+  p.v = std::min(cam.lim_yp, std::max(-cam.lim_yn, vr));
+  p.u_clamped = !(ur > -cam.lim_xn && ur < cam.lim_xp);
+  p.v_clamped = !(vr > -cam.lim_yn && vr < cam.lim_yp);
+  // J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]];  T = J * Rview
+  const double J00 = cam.fx / z, J02 = -cam.fx * p.u / z, J11 = cam.fy / z, J12 = -cam.fy * p.v / z;
+  for (int j = 0; j < 3; ++j) {
+    p.T[j] = J00 * cam.R[j] + J02 * cam.R[6 + j];
+    p.T[3 + j] = J11 * cam.R[3 + j] + J12 * cam.R[6 + j];
+  }
+  // cov = T Sig3 T^T (+ eps2d on the diagonal)
+  double TS[6];  // T * Sig3 (2x3)
+  for (int r = 0; r < 2; ++r)
+    for (int j = 0; j < 3; ++j)
+      TS[r * 3 + j] = p.T[r * 3] * sym3(p.Sig3, 0, j) + p.T[r * 3 + 1] * sym3(p.Sig3, 1, j) +
+                      p.T[r * 3 + 2] * sym3(p.Sig3, 2, j);
+  p.cov[0] = TS[0] * p.T[0] + TS[1] * p.T[1] + TS[2] * p.T[2] + eps2d;
+  p.cov[1] = TS[0] * p.T[3] + TS[1] * p.T[4] + TS[2] * p.T[5];
+  p.cov[2] = TS[3] * p.T[3] + TS[4] * p.T[4] + TS[5] * p.T[5] + eps2d;
+  p.det = p.cov[0] * p.cov[2] - p.cov[1] * p.cov[1];
+  if (!(p.det > 0.0) || !std::isfinite(p.det) || !std::isfinite(p.cov[0]) || !std::isfinite(p.cov[2]))
+    return;
+  p.conic[0] = p.cov[2] / p.det;
+  p.conic[1] = -p.cov[1] / p.det;
+  p.conic[2] = p.cov[0] / p.det;
+  p.ok = std::isfinite(p.conic[0]) && std::isfinite(p.conic[1]) && std::isfinite(p.conic[2]);
+}
+
+// ---------------------------------------------------------------------------------------
+// Forward projection + binning.
+template <typename S>
+void project_all(int64_t N, const S* means, const S* quats, const S* scales, const S* opac,
+                 const Camera& cam, double near, double far, double eps2d, int tilesX, int tilesY,
+                 S* rec, S* means2d, int32_t* radii, int32_t* rect, int nthreads) {
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+  for (int64_t i = 0; i < N; ++i) {
+    Proj p;
+    project_one(means + 3 * i, quats + 4 * i, scales + 3 * i, cam, near, far, eps2d, p);
+    radii[i] = 0;
+    for (int k = 0; k < 4; ++k) rect[4 * i + k] = 0;
+    means2d[2 * i] = p.in_depth ? S(p.m2d[0]) : S(0);
+    means2d[2 * i + 1] = p.in_depth ? S(p.m2d[1]) : S(0);
+    for (int k = 0; k < REC; ++k) rec[REC * i + k] = S(0);
+    if (!p.ok) continue;
+    const double o = double(opac[i]);
+    const double mid = 0.5 * (p.cov[0] + p.cov[2]);
+    const double lam = mid + std::sqrt(std::max(0.1, mid * mid - p.det));
+    double r = std::ceil(3.0 * std::sqrt(lam));
+    if (!std::isfinite(r)) continue;
+    r = std::min(r, 1e9);
+    const double mx = p.m2d[0], my = p.m2d[1];
+    const double tx0 = std::floor((mx - r) / TILE), tx1 = std::ceil((mx + r) / TILE);
+    const double ty0 = std::floor((my - r) / TILE), ty1 = std::ceil((my + r) / TILE);
+    const int x0 = int(std::min<double>(tilesX, std::max(0.0, tx0)));
+    const int x1 = int(std::min<double>(tilesX, std::max(0.0, tx1)));
+    const int y0 = int(std::min<double>(tilesY, std::max(0.0, ty0)));
+    const int y1 = int(std::min<double>(tilesY, std::max(0.0, ty1)));
+    if (x0 >= x1 || y0 >= y1) continue;
+    radii[i] = int32_t(r);
+    rect[4 * i] = x0; rect[4 * i + 1] = y0; rect[4 * i + 2] = x1; rect[4 * i + 3] = y1;
+    // Opacity-aware ellipse extent: alpha >= 1/255 needs q <= 2 ln(255 o); the slice of
+    // {q <= t} has half-width sqrt(t * cov_xx). Margins cover float rounding of q.
+    const double tq = 2.0 * std::log(o / ALPHA_MIN);
+    const double ex = std::sqrt(std::max(0.0, tq) * p.cov[0]) * 1.02 + 0.5;
+    const double ey = std::sqrt(std::max(0.0, tq) * p.cov[2]) * 1.02 + 0.5;
+    S* g = rec + REC * i;
+    g[0] = S(mx); g[1] = S(my);
+    g[2] = S(p.conic[0]); g[3] = S(p.conic[1]); g[4] = S(p.conic[2]);
+    g[5] = S(o); g[6] = S(p.t[2]);
+    g[7] = S(std::min(ex, 1e9)); g[8] = S(std::min(ey, 1e9));
+  }
+}
+
+// Stable LSD radix sort of (float key >= 0, index) by key: positive IEEE floats order like
+// their bit patterns. Ties keep index order, so the result is deterministic.
+void sort_by_depth(std::vector<uint64_t>& items) {
+  std::vector<uint64_t> tmp(items.size());
+  for (int pass = 0; pass < 4; ++pass) {
+    const int shift = 32 + 8 * pass;
+    size_t cnt[257] = {0};
+    for (uint64_t it : items) ++cnt[((it >> shift) & 0xFF) + 1];
+    for (int b = 0; b < 256; ++b) cnt[b + 1] += cnt[b];
+    for (uint64_t it : items) tmp[cnt[(it >> shift) & 0xFF]++] = it;
+    items.swap(tmp);
+  }
+}
+
+// Tile lists in front-to-back order. offsets: (ntiles+1,) int64; ids: (M,) int32.
+std::pair<at::Tensor, at::Tensor> bin_gaussians(int64_t N, const float* depth_f, const int32_t* radii,
+                                                const int32_t* rect, int tilesX, int tilesY,
+                                                int nthreads) {
+  std::vector<uint64_t> order;
+  order.reserve(N);
+  for (int64_t i = 0; i < N; ++i) {
+    if (radii[i] <= 0) continue;
+    uint32_t bits;
+    float d = depth_f[i];
+    std::memcpy(&bits, &d, 4);
+    order.push_back((uint64_t(bits) << 32) | uint64_t(uint32_t(i)));
+  }
+  sort_by_depth(order);
+  const int64_t ntiles = int64_t(tilesX) * tilesY;
+  auto offsets = at::zeros({ntiles + 1}, at::kLong);
+  int64_t* off = offsets.data_ptr<int64_t>();
+  // Bands of tile rows, each scanned by one thread over the sorted list: no atomics, and the
+  // lists come out already depth-sorted.
+  const int nbands = std::max(1, std::min(tilesY, nthreads * 4));
+  auto band_of = [&](int b) { return std::make_pair(int(int64_t(b) * tilesY / nbands), int(int64_t(b + 1) * tilesY / nbands)); };
+  std::vector<int64_t> counts(ntiles, 0);
+#pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
+  for (int b = 0; b < nbands; ++b) {
+    auto [r0, r1] = band_of(b);
+    for (uint64_t it : order) {
+      const int64_t i = int64_t(it & 0xFFFFFFFFu);
+      const int32_t* rc = rect + 4 * i;
+      const int ya = std::max(rc[1], r0), yb = std::min(rc[3], r1);
+      for (int ty = ya; ty < yb; ++ty)
+        for (int tx = rc[0]; tx < rc[2]; ++tx) ++counts[int64_t(ty) * tilesX + tx];
+    }
+  }
+  off[0] = 0;
+  for (int64_t t = 0; t < ntiles; ++t) off[t + 1] = off[t] + counts[t];
+  auto ids = at::empty({off[ntiles]}, at::kInt);
+  int32_t* idp = ids.data_ptr<int32_t>();
+#pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
+  for (int b = 0; b < nbands; ++b) {
+    auto [r0, r1] = band_of(b);
+    std::vector<int64_t> cur(off + int64_t(r0) * tilesX, off + int64_t(r1) * tilesX);
+    for (uint64_t it : order) {
+      const int64_t i = int64_t(it & 0xFFFFFFFFu);
+      const int32_t* rc = rect + 4 * i;
+      const int ya = std::max(rc[1], r0), yb = std::min(rc[3], r1);
+      for (int ty = ya; ty < yb; ++ty)
+        for (int tx = rc[0]; tx < rc[2]; ++tx)
+          idp[cur[int64_t(ty - r0) * tilesX + tx]++] = int32_t(i);
+    }
+  }
+  return {offsets, ids};
+}
+
+// ---------------------------------------------------------------------------------------
+// Pixel kernels. Per tile, pixel state lives in 256-entry arrays (row-major 16x16);
+// Gaussians are the outer loop so per-Gaussian gradient sums stay in registers.
+
+// One pixel's entry of the alive mask: all-ones bits for VF8 lanes, 1/0 for VD1.
+template <int L, typename S>
+inline void set_alive(S* p, bool in) {
+  if constexpr (L > 1) {
+    const uint32_t bits = in ? 0xFFFFFFFFu : 0u;
+    std::memcpy(p, &bits, sizeof(uint32_t));
+  } else {
+    *p = in ? S(1) : S(0);
+  }
+}
+
+// Rows / lane groups of the tile that the Gaussian's ellipse extent can touch.
+struct Span { int r0, r1, v0, v1; };
+
+template <int L, typename S>
+inline Span span_of(const S* g, int x0, int y0, int tw, int th) {
+  const double mx = g[0], my = g[1], ex = g[7], ey = g[8];
+  // pixel centre j + 0.5 within [m - e, m + e]
+  const double ra = std::ceil(my - ey - y0 - 0.5), rb = std::floor(my + ey - y0 - 0.5);
+  const double ca = std::ceil(mx - ex - x0 - 0.5), cb = std::floor(mx + ex - x0 - 0.5);
+  Span s;
+  s.r0 = int(std::max(0.0, ra));
+  s.r1 = int(std::min(double(th - 1), rb)) + 1;
+  const int c0 = int(std::max(0.0, ca));
+  const int c1 = int(std::min(double(tw - 1), cb));
+  s.v0 = c0 / L;
+  s.v1 = c1 / L + 1;
+  if (c1 < c0) s.v1 = s.v0;
+  return s;
+}
+
+template <typename S>
+void render_forward(const Camera& cam, int D, int tilesX, int tilesY, const S* rec, const S* colors,
+                    const int64_t* off, const int32_t* ids, S* out_acc, S* out_dn, S* out_a,
+                    int nthreads) {
+  using P = typename PackFor<S>::P;
+  using V = typename P::V;
+  using M = typename P::M;
+  constexpr int L = P::L;
+  const int W = cam.W, H = cam.H;
+  const int64_t ntiles = int64_t(tilesX) * tilesY;
+#pragma omp parallel num_threads(nthreads)
+  {
+    alignas(32) S T[TPIX], alive[TPIX], accD[TPIX], accA[TPIX];
+    std::vector<S> accC_store(size_t(D) * TPIX + 8);
+    S* accC = accC_store.data();
+    // accC needs 32-byte alignment for aligned loads
+    {
+      uintptr_t a = reinterpret_cast<uintptr_t>(accC);
+      accC += ((32 - (a & 31)) & 31) / sizeof(S);
+    }
+    const V ones = P::set1(S(1)), amin = P::set1(S(ALPHA_MIN)), amax = P::set1(S(ALPHA_MAX));
+    const V tmin = P::set1(S(T_MIN)), mhalf = P::set1(S(-0.5)), lane = P::iota(), zero = P::set1(S(0));
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t tile = 0; tile < ntiles; ++tile) {
+      const int tx = int(tile % tilesX), ty = int(tile / tilesX);
+      const int x0 = tx * TILE, y0 = ty * TILE;
+      const int tw = std::min(TILE, W - x0), th = std::min(TILE, H - y0);
+      int n_alive = 0;
+      for (int j = 0; j < TILE; ++j)
+        for (int i = 0; i < TILE; ++i) {
+          const bool in = (i < tw && j < th);
+          set_alive<L>(&alive[j * TILE + i], in);
+          n_alive += in;
+        }
+      for (int k = 0; k < TPIX; ++k) { T[k] = S(1); accD[k] = S(0); accA[k] = S(0); }
+      for (int k = 0; k < D * TPIX; ++k) accC[k] = S(0);
+
+      for (int64_t e = off[tile]; e < off[tile + 1] && n_alive > 0; ++e) {
+        const int64_t gi = ids[e];
+        const S* g = rec + REC * gi;
+        const S* col = colors + int64_t(D) * gi;
+        const Span sp = span_of<L>(g, x0, y0, tw, th);
+        const V mx = P::set1(g[0]), my = P::set1(g[1]);
+        const V ca = P::set1(g[2]), cb = P::set1(g[3]), cc = P::set1(g[4]);
+        const V op = P::set1(g[5]), zz = P::set1(g[6]);
+        for (int r = sp.r0; r < sp.r1; ++r) {
+          const V dy = P::set1(S(y0 + r) + S(0.5)) - my;
+          const V cdy = cb * dy, hdy2 = mhalf * cc * dy * dy;
+          for (int vg = sp.v0; vg < sp.v1; ++vg) {
+            const int idx = r * TILE + vg * L;
+            M m = P::load_mask(&alive[idx]);
+            if (!P::any(m)) continue;
+            const V dx = P::set1(S(x0 + vg * L) + S(0.5)) + lane - mx;
+            const V power = mhalf * ca * dx * dx - cdy * dx + hdy2;
+            const V al = P::vmin(amax, op * P::exp(power));
+            m = P::mand(m, P::mand(P::ge(al, amin), P::le(power, zero)));
+            if (!P::any(m)) continue;
+            const V Tv = P::load(&T[idx]);
+            const V nT = Tv * (ones - al);
+            const M stop = P::mand(m, P::le(nT, tmin));  // keep only while T stays > 1e-4
+            if (P::any(stop)) {
+              n_alive -= P::count(stop);
+              P::store_mask(&alive[idx], P::mandnot(P::load_mask(&alive[idx]), stop));
+              m = P::mandnot(m, stop);
+            }
+            const V w = P::keep(m, al * Tv);
+            for (int c = 0; c < D; ++c)
+              P::store(&accC[c * TPIX + idx], P::fma(w, P::set1(col[c]), P::load(&accC[c * TPIX + idx])));
+            P::store(&accD[idx], P::fma(w, zz, P::load(&accD[idx])));
+            P::store(&accA[idx], P::load(&accA[idx]) + w);
+            P::store(&T[idx], P::sel(m, nT, Tv));
+          }
+        }
+      }
+      for (int j = 0; j < th; ++j)
+        for (int i = 0; i < tw; ++i) {
+          const int k = j * TILE + i;
+          const int64_t pix = int64_t(y0 + j) * W + (x0 + i);
+          for (int c = 0; c < D; ++c) out_acc[pix * D + c] = accC[c * TPIX + k];
+          out_dn[pix] = accD[k];
+          out_a[pix] = accA[k];
+        }
+    }
+  }
+}
+
+// Gradient slots per Gaussian in the per-thread buffers.
+enum { G_MX = 0, G_MY, G_CA, G_CB, G_CC, G_OP, G_Z, G_AX, G_AY, G_COL };
+
+template <typename S>
+void render_backward(const Camera& cam, int D, int tilesX, int tilesY, const S* rec, const S* colors,
+                     const int64_t* off, const int32_t* ids, const S* acc, const S* dn, const S* aa,
+                     const S* g_acc, const S* g_dn, const S* g_a, int64_t N, double* gbuf, int nthreads) {
+  using P = typename PackFor<S>::P;
+  using V = typename P::V;
+  using M = typename P::M;
+  constexpr int L = P::L;
+  const int W = cam.W, H = cam.H;
+  const int64_t ntiles = int64_t(tilesX) * tilesY;
+  const int K = G_COL + D;
+#pragma omp parallel num_threads(nthreads)
+  {
+    double* mybuf = gbuf + int64_t(omp_get_thread_num()) * N * K;
+    alignas(32) S T[TPIX], alive[TPIX], pre[TPIX], stot[TPIX], gdn[TPIX], ga[TPIX];
+    std::vector<S> gc_store(size_t(D) * TPIX + 8);
+    S* gC = gc_store.data();
+    {
+      uintptr_t a = reinterpret_cast<uintptr_t>(gC);
+      gC += ((32 - (a & 31)) & 31) / sizeof(S);
+    }
+    std::vector<V> vcol(D > 0 ? D : 1);
+    const V ones = P::set1(S(1)), amin = P::set1(S(ALPHA_MIN)), amax = P::set1(S(ALPHA_MAX));
+    const V tmin = P::set1(S(T_MIN)), mhalf = P::set1(S(-0.5)), lane = P::iota(), zero = P::set1(S(0));
+#pragma omp for schedule(static, 1)
+    for (int64_t tile = 0; tile < ntiles; ++tile) {
+      const int tx = int(tile % tilesX), ty = int(tile / tilesX);
+      const int x0 = tx * TILE, y0 = ty * TILE;
+      const int tw = std::min(TILE, W - x0), th = std::min(TILE, H - y0);
+      int n_alive = 0;
+      for (int j = 0; j < TILE; ++j)
+        for (int i = 0; i < TILE; ++i) {
+          const int k = j * TILE + i;
+          const bool in = (i < tw && j < th);
+          set_alive<L>(&alive[k], in);
+          n_alive += in;
+          T[k] = S(1);
+          pre[k] = S(0);
+          if (in) {
+            const int64_t pix = int64_t(y0 + j) * W + (x0 + i);
+            // dL/dw_i = c_i . g_acc + z_i g_dn + g_a; stot = sum_i w_i dL/dw_i (from the forward)
+            double st = double(dn[pix]) * g_dn[pix] + double(aa[pix]) * g_a[pix];
+            for (int c = 0; c < D; ++c) {
+              gC[c * TPIX + k] = g_acc[pix * D + c];
+              st += double(acc[pix * D + c]) * g_acc[pix * D + c];
+            }
+            gdn[k] = g_dn[pix];
+            ga[k] = g_a[pix];
+            stot[k] = S(st);
+          } else {
+            for (int c = 0; c < D; ++c) gC[c * TPIX + k] = S(0);
+            gdn[k] = ga[k] = stot[k] = S(0);
+          }
+        }
+
+      for (int64_t e = off[tile]; e < off[tile + 1] && n_alive > 0; ++e) {
+        const int64_t gi = ids[e];
+        const S* g = rec + REC * gi;
+        const S* col = colors + int64_t(D) * gi;
+        const Span sp = span_of<L>(g, x0, y0, tw, th);
+        if (sp.r0 >= sp.r1 || sp.v0 >= sp.v1) continue;
+        const V mx = P::set1(g[0]), my = P::set1(g[1]);
+        const V ca = P::set1(g[2]), cb = P::set1(g[3]), cc = P::set1(g[4]);
+        const V op = P::set1(g[5]), zz = P::set1(g[6]);
+        V s_mx = zero, s_my = zero, s_ca = zero, s_cb = zero, s_cc = zero, s_op = zero, s_z = zero;
+        V s_ax = zero, s_ay = zero;
+        for (int c = 0; c < D; ++c) vcol[c] = zero;
+        for (int r = sp.r0; r < sp.r1; ++r) {
+          const V dy = P::set1(S(y0 + r) + S(0.5)) - my;
+          const V cdy = cb * dy, hdy2 = mhalf * cc * dy * dy;
+          for (int vg = sp.v0; vg < sp.v1; ++vg) {
+            const int idx = r * TILE + vg * L;
+            M m = P::load_mask(&alive[idx]);
+            if (!P::any(m)) continue;
+            // Must match render_forward operation for operation (same skip/stop decisions).
+            const V dx = P::set1(S(x0 + vg * L) + S(0.5)) + lane - mx;
+            const V power = mhalf * ca * dx * dx - cdy * dx + hdy2;
+            const V G = P::exp(power);
+            const V raw = op * G;
+            const V al = P::vmin(amax, raw);
+            m = P::mand(m, P::mand(P::ge(al, amin), P::le(power, zero)));
+            if (!P::any(m)) continue;
+            const V Tv = P::load(&T[idx]);
+            const V nT = Tv * (ones - al);
+            const M stop = P::mand(m, P::le(nT, tmin));  // keep only while T stays > 1e-4
+            if (P::any(stop)) {
+              n_alive -= P::count(stop);
+              P::store_mask(&alive[idx], P::mandnot(P::load_mask(&alive[idx]), stop));
+              m = P::mandnot(m, stop);
+              if (!P::any(m)) continue;
+            }
+            const V w = P::keep(m, al * Tv);
+            V vi = P::load(&ga[idx]);
+            vi = P::fma(zz, P::load(&gdn[idx]), vi);
+            for (int c = 0; c < D; ++c) {
+              const V gcc_ = P::load(&gC[c * TPIX + idx]);
+              vi = P::fma(P::set1(col[c]), gcc_, vi);
+              vcol[c] = P::fma(w, gcc_, vcol[c]);
+            }
+            s_z = P::fma(w, P::load(&gdn[idx]), s_z);
+            const V npre = P::fma(w, vi, P::load(&pre[idx]));
+            P::store(&pre[idx], npre);
+            const V suffix = P::load(&stot[idx]) - npre;  // sum over later Gaussians of w_j v_j
+            const V dal = P::keep(m, Tv * vi - suffix / (ones - al));
+            // alpha clamped at 0.99 -> no gradient to opacity / power
+            const M unc = P::lt(raw, amax);
+            const V dpow = P::keep(unc, dal * al);
+            s_op = s_op + P::keep(unc, dal * G);
+            s_ca = P::fma(dpow, mhalf * dx * dx, s_ca);
+            s_cb = s_cb - dpow * dx * dy;
+            s_cc = P::fma(dpow, mhalf * dy * dy, s_cc);
+            const V gmx = dpow * (ca * dx + cb * dy);
+            const V gmy = dpow * (cb * dx + cc * dy);
+            s_mx = s_mx + gmx;
+            s_my = s_my + gmy;
+            s_ax = s_ax + P::vabs(gmx);
+            s_ay = s_ay + P::vabs(gmy);
+            P::store(&T[idx], P::sel(m, nT, Tv));
+          }
+        }
+        double* gb = mybuf + gi * K;
+        gb[G_MX] += P::hsum(s_mx); gb[G_MY] += P::hsum(s_my);
+        gb[G_CA] += P::hsum(s_ca); gb[G_CB] += P::hsum(s_cb); gb[G_CC] += P::hsum(s_cc);
+        gb[G_OP] += P::hsum(s_op); gb[G_Z] += P::hsum(s_z);
+        gb[G_AX] += P::hsum(s_ax); gb[G_AY] += P::hsum(s_ay);
+        for (int c = 0; c < D; ++c) gb[G_COL + c] += P::hsum(vcol[c]);
+      }
+    }
+  }
+}
+
+// Backward through the projection for one Gaussian (double). Inputs: dL/dconic (a, b, c as
+// stored, b being the off-diagonal), dL/dmean2d, dL/dz. Outputs dL/dmean, dL/dquat, dL/dscale.
+void project_backward_one(const Proj& p, const Camera& cam, const double gconic[3], const double gm2d[2],
+                          double gz_depth, double gmean[3], double gquat[4], double gscale[3]) {
+  for (int i = 0; i < 3; ++i) gmean[i] = gscale[i] = 0.0;
+  for (int i = 0; i < 4; ++i) gquat[i] = 0.0;
+  if (!p.in_depth) return;
+  const double z = p.t[2];
+  double gt[3] = {0.0, 0.0, gz_depth};
+  // mean2d = (fx tx/z + cx, fy ty/z + cy)
+  gt[0] += gm2d[0] * cam.fx / z;
+  gt[1] += gm2d[1] * cam.fy / z;
+  gt[2] += -(gm2d[0] * cam.fx * p.t[0] + gm2d[1] * cam.fy * p.t[1]) / (z * z);
+  if (p.ok) {
+    // conic = cov^-1: dL/dcov = -C Gc C with Gc symmetric (off-diagonal gets half of dL/db).
+    const double C[4] = {p.conic[0], p.conic[1], p.conic[1], p.conic[2]};
+    const double Gc[4] = {gconic[0], 0.5 * gconic[1], 0.5 * gconic[1], gconic[2]};
+    double tmp[4], Gs[4];
+    for (int i = 0; i < 2; ++i)
+      for (int j = 0; j < 2; ++j) tmp[i * 2 + j] = C[i * 2] * Gc[j] + C[i * 2 + 1] * Gc[2 + j];
+    for (int i = 0; i < 2; ++i)
+      for (int j = 0; j < 2; ++j) Gs[i * 2 + j] = -(tmp[i * 2] * C[j] + tmp[i * 2 + 1] * C[2 + j]);
+    // cov = T Sig3 T^T: dT = 2 Gs T Sig3, dSig3 = T^T Gs T
+    double TS[6];
+    for (int r = 0; r < 2; ++r)
+      for (int j = 0; j < 3; ++j)
+        TS[r * 3 + j] = p.T[r * 3] * sym3(p.Sig3, 0, j) + p.T[r * 3 + 1] * sym3(p.Sig3, 1, j) +
+                        p.T[r * 3 + 2] * sym3(p.Sig3, 2, j);
+    double GT[6];
+    for (int r = 0; r < 2; ++r)
+      for (int j = 0; j < 3; ++j) GT[r * 3 + j] = 2.0 * (Gs[r * 2] * TS[j] + Gs[r * 2 + 1] * TS[3 + j]);
+    double GS[9];
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) {
+        double s = 0.0;
+        for (int a = 0; a < 2; ++a)
+          for (int b = 0; b < 2; ++b) s += p.T[a * 3 + i] * Gs[a * 2 + b] * p.T[b * 3 + j];
+        GS[i * 3 + j] = s;
+      }
+    // T = J Rview: dJ = dT Rview^T (only the 4 non-zero J entries matter)
+    auto dJ = [&](int r, int c) {
+      return GT[r * 3] * cam.R[c * 3] + GT[r * 3 + 1] * cam.R[c * 3 + 1] + GT[r * 3 + 2] * cam.R[c * 3 + 2];
+    };
+    const double gJ00 = dJ(0, 0), gJ02 = dJ(0, 2), gJ11 = dJ(1, 1), gJ12 = dJ(1, 2);
+    // J00 = fx/z, J02 = -fx u/z, J11 = fy/z, J12 = -fy v/z, u = clamp(tx/z), v = clamp(ty/z)
+    const double z2 = z * z;
+    gt[2] += -gJ00 * cam.fx / z2 + gJ02 * cam.fx * p.u / z2 - gJ11 * cam.fy / z2 + gJ12 * cam.fy * p.v / z2;
+    const double gu = -gJ02 * cam.fx / z, gv = -gJ12 * cam.fy / z;
+    if (!p.u_clamped) { gt[0] += gu / z; gt[2] -= gu * p.t[0] / z2; }
+    if (!p.v_clamped) { gt[1] += gv / z; gt[2] -= gv * p.t[1] / z2; }
+    // Sig3 = M M^T: dM = (GS + GS^T) M
+    double GM[9];
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) {
+        double s = 0.0;
+        for (int k = 0; k < 3; ++k) s += (GS[i * 3 + k] + GS[k * 3 + i]) * p.M[k * 3 + j];
+        GM[i * 3 + j] = s;
+      }
+    // M = Rq diag(s): dRq_ij = dM_ij s_j, ds_j = sum_i dM_ij Rq_ij
+    double GR[9];
+    for (int j = 0; j < 3; ++j) {
+      double acc = 0.0;
+      for (int i = 0; i < 3; ++i) {
+        acc += GM[i * 3 + j] * p.Rq[i * 3 + j];
+        GR[i * 3 + j] = GM[i * 3 + j] * p.s[j];
+      }
+      gscale[j] = acc;
+    }
+    const double w = p.qn[0], x = p.qn[1], y = p.qn[2], zq = p.qn[3];
+    const double* G = GR;
+    double gq[4];
+    gq[0] = 2 * (-zq * G[1] + y * G[2] + zq * G[3] - x * G[5] - y * G[6] + x * G[7]);
+    gq[1] = 2 * (y * G[1] + zq * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + zq * G[6] + w * G[7] - 2 * x * G[8]);
+    gq[2] = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + zq * G[5] - w * G[6] + zq * G[7] - 2 * y * G[8]);
+    gq[3] = 2 * (-2 * zq * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * zq * G[4] + y * G[5] + x * G[6] + y * G[7]);
+    // q_hat = q / |q| (constant identity below QUAT_EPS)
+    if (p.qnorm > QUAT_EPS) {
+      const double dot = gq[0] * w + gq[1] * x + gq[2] * y + gq[3] * zq;
+      for (int i = 0; i < 4; ++i) gquat[i] = (gq[i] - p.qn[i] * dot) / p.qnorm;
+    }
+  }
+  // t = Rview m + tview
+  for (int j = 0; j < 3; ++j) gmean[j] = cam.R[j] * gt[0] + cam.R[3 + j] * gt[1] + cam.R[6 + j] * gt[2];
+}
+
+int clamp_threads(int64_t n) { return int(std::max<int64_t>(1, std::min<int64_t>(n, 256))); }
+
+template <typename S>
+std::vector<at::Tensor> forward_impl(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                     const at::Tensor& opac, const at::Tensor& colors, const Camera& cam,
+                                     double near, double far, double eps2d, int nthreads) {
+  const int64_t N = means.size(0);
+  const int D = int(colors.size(1));
+  const int W = cam.W, H = cam.H;
+  const int tilesX = (W + TILE - 1) / TILE, tilesY = (H + TILE - 1) / TILE;
+  auto opts = means.options();
+  auto rec = at::zeros({N, REC}, opts);
+  auto means2d = at::zeros({N, 2}, opts);
+  auto radii = at::zeros({N}, at::kInt);
+  auto rect = at::zeros({N, 4}, at::kInt);
+  project_all<S>(N, means.data_ptr<S>(), quats.data_ptr<S>(), scales.data_ptr<S>(), opac.data_ptr<S>(), cam,
+                 near, far, eps2d, tilesX, tilesY, rec.data_ptr<S>(), means2d.data_ptr<S>(),
+                 radii.data_ptr<int32_t>(), rect.data_ptr<int32_t>(), nthreads);
+  std::vector<float> depth_f(N);
+  const S* r = rec.data_ptr<S>();
+  for (int64_t i = 0; i < N; ++i) depth_f[i] = float(r[REC * i + 6]);
+  auto [offsets, ids] = bin_gaussians(N, depth_f.data(), radii.data_ptr<int32_t>(), rect.data_ptr<int32_t>(),
+                                      tilesX, tilesY, nthreads);
+  auto acc = at::empty({H, W, D}, opts);
+  auto dn = at::empty({H, W}, opts);
+  auto aa = at::empty({H, W}, opts);
+  render_forward<S>(cam, D, tilesX, tilesY, rec.data_ptr<S>(), colors.data_ptr<S>(), offsets.data_ptr<int64_t>(),
+                    ids.data_ptr<int32_t>(), acc.data_ptr<S>(), dn.data_ptr<S>(), aa.data_ptr<S>(), nthreads);
+  return {acc, dn, aa, radii, means2d, rec, offsets, ids};
+}
+
+template <typename S>
+std::vector<at::Tensor> backward_impl(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                      const at::Tensor& colors, const Camera& cam, double near, double far,
+                                      double eps2d, const at::Tensor& rec, const at::Tensor& offsets,
+                                      const at::Tensor& ids, const at::Tensor& radii, const at::Tensor& acc,
+                                      const at::Tensor& dn, const at::Tensor& aa, const at::Tensor& g_acc,
+                                      const at::Tensor& g_dn, const at::Tensor& g_a, const at::Tensor& g_m2d,
+                                      int nthreads) {
+  const int64_t N = means.size(0);
+  const int D = int(colors.size(1));
+  const int tilesX = (cam.W + TILE - 1) / TILE, tilesY = (cam.H + TILE - 1) / TILE;
+  const int K = G_COL + D;
+  auto gbuf = at::zeros({nthreads, N, K}, at::kDouble);
+  render_backward<S>(cam, D, tilesX, tilesY, rec.data_ptr<S>(), colors.data_ptr<S>(), offsets.data_ptr<int64_t>(),
+                     ids.data_ptr<int32_t>(), acc.data_ptr<S>(), dn.data_ptr<S>(), aa.data_ptr<S>(),
+                     g_acc.data_ptr<S>(), g_dn.data_ptr<S>(), g_a.data_ptr<S>(), N, gbuf.data_ptr<double>(), nthreads);
+  const double* gb = gbuf.data_ptr<double>();
+  auto opts = means.options();
+  auto g_means = at::zeros({N, 3}, opts), g_quats = at::zeros({N, 4}, opts), g_scales = at::zeros({N, 3}, opts);
+  auto g_opac = at::zeros({N}, opts), g_colors = at::zeros({N, D}, opts), absgrad = at::zeros({N, 2}, opts);
+  S *pm = g_means.data_ptr<S>(), *pq = g_quats.data_ptr<S>(), *ps = g_scales.data_ptr<S>();
+  S *po = g_opac.data_ptr<S>(), *pc = g_colors.data_ptr<S>(), *pa = absgrad.data_ptr<S>();
+  const S* gm2 = g_m2d.data_ptr<S>();
+  const int32_t* rad = radii.data_ptr<int32_t>();
+  const S *mp = means.data_ptr<S>(), *qp = quats.data_ptr<S>(), *sp = scales.data_ptr<S>();
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+  for (int64_t i = 0; i < N; ++i) {
+    double sum[64 + 16];
+    std::vector<double> big;
+    double* s = sum;
+    if (K > 80) { big.assign(K, 0.0); s = big.data(); }
+    for (int k = 0; k < K; ++k) s[k] = 0.0;
+    for (int t = 0; t < nthreads; ++t)
+      for (int k = 0; k < K; ++k) s[k] += gb[(int64_t(t) * N + i) * K + k];
+    const double gext[2] = {double(gm2[2 * i]), double(gm2[2 * i + 1])};
+    const bool drawn = rad[i] > 0;
+    if (!drawn && gext[0] == 0.0 && gext[1] == 0.0) continue;
+    Proj p;
+    project_one(mp + 3 * i, qp + 4 * i, sp + 3 * i, cam, near, far, eps2d, p);
+    const double gconic[3] = {drawn ? s[G_CA] : 0.0, drawn ? s[G_CB] : 0.0, drawn ? s[G_CC] : 0.0};
+    const double gm[2] = {(drawn ? s[G_MX] : 0.0) + gext[0], (drawn ? s[G_MY] : 0.0) + gext[1]};
+    double gmean[3], gquat[4], gscale[3];
+    project_backward_one(p, cam, gconic, gm, drawn ? s[G_Z] : 0.0, gmean, gquat, gscale);
+    for (int k = 0; k < 3; ++k) { pm[3 * i + k] = S(gmean[k]); ps[3 * i + k] = S(gscale[k]); }
+    for (int k = 0; k < 4; ++k) pq[4 * i + k] = S(gquat[k]);
+    if (drawn) {
+      po[i] = S(s[G_OP]);
+      for (int c = 0; c < D; ++c) pc[int64_t(i) * D + c] = S(s[G_COL + c]);
+      pa[2 * i] = S(s[G_AX]);
+      pa[2 * i + 1] = S(s[G_AY]);
+    }
+  }
+  return {g_means, g_quats, g_scales, g_opac, g_colors, absgrad};
+}
+
+void check_cpu_contig(const at::Tensor& t, at::ScalarType st, const char* name) {
+  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
+  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
+  TORCH_CHECK(t.scalar_type() == st, name, " has dtype ", t.scalar_type(), ", expected ", st);
+}
+
+}  // namespace
+
+// Returns [acc (H,W,D), depth numerator (H,W), alpha (H,W), radii (N,) int32, means2d (N,2),
+//          records (N,9), tile offsets (ntiles+1,) int64, tile ids (M,) int32].
+std::vector<at::Tensor> raster_forward(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor opac,
+                                       at::Tensor colors, at::Tensor viewmat, at::Tensor K, int64_t width,
+                                       int64_t height, double near, double far, double eps2d, int64_t nthreads) {
+  const auto st = means.scalar_type();
+  TORCH_CHECK(st == at::kFloat || st == at::kDouble, "means must be float32 or float64");
+  for (auto [t, n] : {std::pair{&means, "means"}, {&quats, "quats"}, {&scales, "scales"}, {&opac, "opacities"},
+                      {&colors, "colors"}})
+    check_cpu_contig(*t, st, n);
+  const Camera cam = make_camera(viewmat, K, int(width), int(height));
+  const int nt = clamp_threads(nthreads);
+  if (st == at::kFloat) return forward_impl<float>(means, quats, scales, opac, colors, cam, near, far, eps2d, nt);
+  return forward_impl<double>(means, quats, scales, opac, colors, cam, near, far, eps2d, nt);
+}
+
+// Returns [g_means (N,3), g_quats (N,4), g_scales (N,3), g_opacities (N,), g_colors (N,D), absgrad2d (N,2)].
+std::vector<at::Tensor> raster_backward(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor colors,
+                                        at::Tensor viewmat, at::Tensor K, int64_t width, int64_t height, double near,
+                                        double far, double eps2d, at::Tensor rec, at::Tensor offsets, at::Tensor ids,
+                                        at::Tensor radii, at::Tensor acc, at::Tensor dn, at::Tensor aa,
+                                        at::Tensor g_acc, at::Tensor g_dn, at::Tensor g_a, at::Tensor g_m2d,
+                                        int64_t nthreads) {
+  const auto st = means.scalar_type();
+  for (auto [t, n] : {std::pair{&means, "means"}, {&quats, "quats"}, {&scales, "scales"}, {&colors, "colors"},
+                      {&rec, "rec"}, {&acc, "acc"}, {&dn, "dn"}, {&aa, "alpha"}, {&g_acc, "g_acc"},
+                      {&g_dn, "g_dn"}, {&g_a, "g_alpha"}, {&g_m2d, "g_means2d"}})
+    check_cpu_contig(*t, st, n);
+  const Camera cam = make_camera(viewmat, K, int(width), int(height));
+  const int nt = clamp_threads(nthreads);
+  if (st == at::kFloat)
+    return backward_impl<float>(means, quats, scales, colors, cam, near, far, eps2d, rec, offsets, ids, radii, acc,
+                                dn, aa, g_acc, g_dn, g_a, g_m2d, nt);
+  return backward_impl<double>(means, quats, scales, colors, cam, near, far, eps2d, rec, offsets, ids, radii, acc,
+                               dn, aa, g_acc, g_dn, g_a, g_m2d, nt);
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &raster_forward, "Gaussian rasterization forward (CPU)");
+  m.def("backward", &raster_backward, "Gaussian rasterization backward (CPU)");
+}

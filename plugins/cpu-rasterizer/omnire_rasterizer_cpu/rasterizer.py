@@ -1,0 +1,124 @@
+"""The native CPU rasterizer: :class:`CpuRasterizer` and its autograd function.
+
+The C++ kernel returns the un-normalised accumulations per pixel (colour sum ``acc`` (H,W,D),
+depth numerator ``dn`` (H,W), alpha ``a`` (H,W)); background compositing and the expected-
+depth division are done here in torch so autograd handles them (they are O(H*W*D)).
+float64 inputs run the double-precision kernel (used by gradient checks); anything else is
+computed in float32 and the gradients are cast back by autograd.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from omnire.rasterization import RasterInputError, RenderOutput, check_raster_inputs
+
+from ._build import load_extension
+
+
+def _ext():
+    mod, reason = load_extension()
+    if mod is None:
+        raise RuntimeError(f"the cpu rasterizer is unavailable: {reason}")
+    return mod
+
+
+class _RasterizeFn(torch.autograd.Function):
+    """(means, quats, scales, opacities, colors) -> (acc, dn, alpha, radii, means2d).
+
+    Shapes: means (N,3), quats (N,4), scales (N,3), opacities (N,), colors (N,D) ->
+    acc (H,W,D), dn (H,W), alpha (H,W), radii (N,) int32, means2d (N,2).
+    ``absgrad`` (N,2) is a plain buffer: the backward adds sum_pixels |dL/dmeans2d| into it.
+    No gradients flow to viewmat or K.
+    """
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, colors, viewmat, K, absgrad, settings):
+        width, height, near, far, eps2d, nthreads = settings
+        acc, dn, alpha, radii, means2d, rec, offsets, ids = _ext().forward(
+            means, quats, scales, opacities, colors, viewmat, K, width, height, near, far, eps2d, nthreads
+        )
+        ctx.settings = settings
+        ctx.absgrad = absgrad
+        ctx.save_for_backward(means, quats, scales, colors, viewmat, K, rec, offsets, ids, radii, acc, dn, alpha)
+        ctx.mark_non_differentiable(radii)
+        return acc, dn, alpha, radii, means2d
+
+    @staticmethod
+    def backward(ctx, g_acc, g_dn, g_alpha, _g_radii, g_means2d):
+        means, quats, scales, colors, viewmat, K, rec, offsets, ids, radii, acc, dn, alpha = ctx.saved_tensors
+        width, height, near, far, eps2d, nthreads = ctx.settings
+
+        def grad_or_zeros(g, like):
+            return torch.zeros_like(like) if g is None else g.contiguous().to(like.dtype)
+
+        g_m2d = (torch.zeros(means.shape[0], 2, dtype=means.dtype) if g_means2d is None
+                 else g_means2d.contiguous().to(means.dtype))
+        g_means, g_quats, g_scales, g_opac, g_colors, absgrad = _ext().backward(
+            means, quats, scales, colors, viewmat, K, width, height, near, far, eps2d,
+            rec, offsets, ids, radii, acc, dn, alpha,
+            grad_or_zeros(g_acc, acc), grad_or_zeros(g_dn, dn), grad_or_zeros(g_alpha, alpha), g_m2d,
+            nthreads,
+        )
+        ctx.absgrad.add_(absgrad.to(ctx.absgrad.dtype))
+        return g_means, g_quats, g_scales, g_opac, g_colors, None, None, None, None
+
+
+class CpuRasterizer:
+    """Native (C++/OpenMP, AVX2) rasterizer implementing :class:`omnire.rasterization.Rasterizer`.
+
+    Args:
+        num_threads: OpenMP threads per call (default: ``torch.get_num_threads()`` at call time).
+    """
+
+    name = "cpu"
+
+    def __init__(self, num_threads: Optional[int] = None) -> None:
+        if num_threads is not None and num_threads < 1:
+            raise ValueError(f"num_threads must be >= 1, got {num_threads}")
+        self.num_threads = num_threads
+        _ext()  # fail at construction, not at the first render
+
+    def rasterize(
+        self,
+        means: torch.Tensor,
+        quats: torch.Tensor,
+        scales: torch.Tensor,
+        opacities: torch.Tensor,
+        colors: torch.Tensor,
+        viewmat: torch.Tensor,
+        K: torch.Tensor,
+        width: int,
+        height: int,
+        background: Optional[torch.Tensor] = None,
+        near: float = 0.01,
+        far: float = 1e10,
+        eps2d: float = 0.3,
+    ) -> RenderOutput:
+        check_raster_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
+        for name, t in [("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                        ("colors", colors), ("viewmat", viewmat), ("K", K)]:
+            if t.device.type != "cpu":
+                raise RasterInputError(f"{name}: on {t.device}; the cpu rasterizer needs CPU tensors")
+        dtype = torch.float64 if means.dtype == torch.float64 else torch.float32
+
+        def prep(t: torch.Tensor) -> torch.Tensor:
+            return t.to(dtype).contiguous()
+
+        absgrad = torch.zeros(means.shape[0], 2, dtype=dtype)
+        nthreads = self.num_threads or torch.get_num_threads()
+        settings = (int(width), int(height), float(near), float(far), float(eps2d), int(nthreads))
+        acc, dn, alpha, radii, means2d = _RasterizeFn.apply(
+            prep(means), prep(quats), prep(scales), prep(opacities), prep(colors),
+            viewmat.detach().to(torch.float64).contiguous(), K.detach().to(torch.float64).contiguous(),
+            absgrad, settings,
+        )
+        rgb = acc
+        if background is not None:
+            rgb = acc + (1.0 - alpha)[..., None] * background.to(dtype)
+        depth = dn / alpha.clamp_min(1e-10)
+        return RenderOutput(
+            rgb=rgb, depth=depth[..., None], alpha=alpha[..., None], radii=radii, means2d=means2d,
+            absgrad2d=absgrad,
+        )

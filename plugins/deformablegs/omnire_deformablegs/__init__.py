@@ -1,0 +1,1 @@
+"""DeformableGS baseline plugin for omnire (node type ``deformable_field``, method ``deformablegs``)."""

@@ -1,0 +1,73 @@
+"""The gsplat backend: :class:`GsplatRasterizer` wraps ``gsplat.rasterization``.
+
+gsplat renders ``RGB+ED`` (colour channels plus expected depth, already divided by alpha)
+with ``absgrad=True``; its backward stores sum_pixels |dL/dmeans2d| on
+``meta["means2d"].absgrad``, which a tensor hook copies into the output's ``absgrad2d``.
+Background compositing is done here (rgb + (1 - alpha) bg) so it works for any channel count
+and gsplat version.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from omnire.rasterization import RasterInputError, RenderOutput, check_raster_inputs
+
+
+class GsplatRasterizer:
+    name = "gsplat"
+
+    def __init__(self, packed: bool = False) -> None:
+        # packed=False keeps (N, ...) shaped per-Gaussian outputs (means2d, radii, absgrad).
+        self.packed = packed
+
+    def rasterize(
+        self,
+        means: torch.Tensor,
+        quats: torch.Tensor,
+        scales: torch.Tensor,
+        opacities: torch.Tensor,
+        colors: torch.Tensor,
+        viewmat: torch.Tensor,
+        K: torch.Tensor,
+        width: int,
+        height: int,
+        background: Optional[torch.Tensor] = None,
+        near: float = 0.01,
+        far: float = 1e10,
+        eps2d: float = 0.3,
+    ) -> RenderOutput:
+        check_raster_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
+        if means.device.type != "cuda":
+            raise RasterInputError(f"means: on {means.device}; the gsplat rasterizer needs CUDA tensors")
+        import gsplat
+
+        N, D = colors.shape
+        dev = means.device
+        renders, alphas, meta = gsplat.rasterization(
+            means, quats, scales, opacities, colors,
+            viewmat.to(dev, means.dtype)[None], K.to(dev, means.dtype)[None], int(width), int(height),
+            near_plane=float(near), far_plane=float(far), eps2d=float(eps2d),
+            packed=self.packed, render_mode="RGB+ED", absgrad=True,
+        )  # renders (1, H, W, D+1), alphas (1, H, W, 1)
+        rgb = renders[0, ..., :D]
+        depth = renders[0, ..., D:D + 1]
+        alpha = alphas[0]
+        if background is not None:
+            rgb = rgb + (1.0 - alpha) * background.to(rgb.dtype)
+        radii = meta["radii"][0]
+        if radii.ndim == 2:  # newer gsplat: per-axis radii (N, 2)
+            radii = radii.max(dim=-1).values
+        m2d = meta["means2d"]  # (1, N, 2), requires grad when any input does
+        absgrad = torch.zeros(N, 2, device=dev, dtype=means.dtype)
+        if m2d.requires_grad:
+            def copy_absgrad(grad, m2d=m2d, buf=absgrad):
+                ag = getattr(m2d, "absgrad", None)
+                if ag is not None:
+                    buf.add_(ag.reshape(-1, N, 2)[0].to(buf.dtype))
+                return grad
+
+            m2d.register_hook(copy_absgrad)
+        return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, radii=radii.to(torch.int32),
+                            means2d=m2d[0], absgrad2d=absgrad)

@@ -1,0 +1,1 @@
+"""Periodic Vibration Gaussian baseline plugin for omnire (node type ``pvg``, method ``pvg``)."""
