@@ -19,6 +19,9 @@ class MethodConfig:
 
     nodes: dict[str, Any] = dataclasses.field(default_factory=dict)
     """Enabled node types and their configs (node-type name -> config)."""
+    disable: tuple[str, ...] = ()
+    """Node types of this method to switch off (ablations, e.g. --method.disable smpl); their
+    actors go to the next enabled node type that takes them, else the background."""
     loss_weights: dict[str, float] = dataclasses.field(
         default_factory=lambda: {"l1": 0.8, "dssim": 0.2, "depth": 0.1}
     )

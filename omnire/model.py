@@ -69,8 +69,12 @@ class SceneModel(nn.Module):
         self.scene = scene
         self.rasterizer = rasterizer
         self.device = device
+        unknown = [n for n in method.disable if n not in method.nodes]
+        if unknown:
+            raise ModelBuildError(f"--method.disable {unknown}: not node types of this method ({list(method.nodes)})")
+        enabled = {n: c for n, c in method.nodes.items() if n not in method.disable}
         specs = {}
-        for name in method.nodes:
+        for name in enabled:
             if name not in node_registry:
                 raise ModelBuildError(f"method uses node type {name!r}, which no installed plugin registers; "
                                       f"registered: {node_registry.names()}")
@@ -82,7 +86,7 @@ class SceneModel(nn.Module):
         radius = scene_radius(scene)
         self.scene_radius = radius
         nodes = {}
-        for name, cfg in method.nodes.items():
+        for name, cfg in enabled.items():
             is_actor_type = bool(specs[name].categories)
             if is_actor_type and not assigned[name]:
                 continue  # skip what the scene does not need: no actors, no node

@@ -189,3 +189,11 @@ def colour_box_points(scene: SceneData, images, track: ActorTrack, local: np.nda
         world = local[sel] @ track.poses[ref][:3, :3].T + track.poses[ref][:3, 3]
         colours[sel], _ = colour_from_images(world, scene, images, np.array([ref]))
     return colours
+
+
+def track_displacement(track: ActorTrack) -> float:
+    """Largest distance (m) between the box centres of any two frames the actor is present."""
+    c = track.poses[track.present][:, :3, 3]
+    if len(c) < 2:
+        return 0.0
+    return float(np.linalg.norm(c - c[0], axis=1).max() + np.linalg.norm(c - c.mean(0), axis=1).max())
