@@ -50,3 +50,9 @@ def omnire_register_methods(registry) -> None:
 @hookspec
 def omnire_register_commands(registry) -> None:
     """Register :class:`~omnire.registry.CommandSpec` entries (extra ``omnire`` sub-commands)."""
+
+
+@hookspec
+def omnire_register_pose_estimators(registry) -> None:
+    """Register :class:`~omnire.registry.PoseEstimatorSpec` entries (per-camera human pose
+    estimators feeding the human pose pipeline, :mod:`omnire.humanpose`)."""

@@ -30,6 +30,7 @@ from omnire.registry import (
     LossSpec,
     MethodSpec,
     NodeTypeSpec,
+    PoseEstimatorSpec,
     Provenance,
     RasterizerSpec,
     Registry,
@@ -46,6 +47,7 @@ _HOOKS = {
     "omnire_register_losses": "losses",
     "omnire_register_methods": "methods",
     "omnire_register_commands": "commands",
+    "omnire_register_pose_estimators": "pose_estimators",
 }
 
 
@@ -87,6 +89,8 @@ class Plugins:
     commands: Registry[CommandSpec]
     loaded: list[tuple[str, Provenance]]
     failures: list[PluginFailure]
+    pose_estimators: Registry[PoseEstimatorSpec] = dataclasses.field(
+        default_factory=lambda: Registry("pose estimator"))
 
     def registries(self) -> dict[str, Registry[Any]]:
         return {attr: getattr(self, attr) for attr in _HOOKS.values()}

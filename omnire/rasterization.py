@@ -24,10 +24,14 @@ Outputs (:class:`RenderOutput`)
     depth     (H, W, 1) expected depth sum_i w_i z_i / max(alpha, 1e-10).
     alpha     (H, W, 1) = sum_i w_i.
     radii     (N,) int screen radius in pixels (0 = culled / not rendered).
-    means2d   (N, 2) projected centres in pixels.
+    means2d   (N, 2) projected centres in pixels (unspecified where radii == 0).
     absgrad2d (N, 2) float buffer, zero on return; after ``backward()`` it holds the
               per-Gaussian sum over pixels of |dL/d means2d| (AbsGrad, used by the
-              densification strategy), in pixel units.
+              densification strategy), in pixel units. Repeated backward passes
+              accumulate into it, as ``.grad`` does.
+
+Gradients flow to means, quats, scales, opacities, colors and background; ``viewmat`` and
+``K`` receive none (camera poses are not optimised through the rasterizer).
 
 Per-pixel compositing: Gaussians sorted by camera depth, alpha_i = min(0.99, o_i *
 exp(-0.5 d^T Sigma2d^-1 d)), skipped when alpha_i < 1/255, and a pixel stops once its

@@ -143,3 +143,19 @@ class CommandSpec:
     name: str
     description: str
     main: Callable[[list[str], Any], int | None]
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseEstimatorSpec:
+    """A human pose estimator for the human pose pipeline (:mod:`omnire.humanpose`).
+
+    ``factory(**kw)`` builds an object with ``estimate(scene, camera, frames, boxes) ->
+    list[HumanTracklet]`` (per-camera tracklets with per-frame SMPL rotations in the camera's
+    OpenCV frame); ``available()`` returns ``(ok, reason)`` (e.g. a missing optional package).
+    ``auto`` selection takes the available one with the highest priority."""
+
+    name: str
+    description: str
+    factory: Callable[..., Any]
+    available: Callable[[], tuple[bool, str]]
+    priority: int = 0

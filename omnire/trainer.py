@@ -42,7 +42,9 @@ class TrainerConfig:
     """Loop, logging, evaluation and checkpoint settings."""
 
     max_steps: int = 3000
-    """Training iterations (one image per step)."""
+    """Training iterations (one image per step); learning-rate schedules span them."""
+    max_seconds: float = 0.0
+    """Stop earlier once training (not evaluation) has taken this many seconds (0: no limit)."""
     eval_every: int = 0
     """Evaluate on the held-out frames every N steps (0: only at the end)."""
     log_every: int = 25
@@ -204,20 +206,24 @@ class Trainer:
                        "{task.fields[ng]} G"),
             TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), disable=not tc.progress, transient=False,
         )
-        start_time = time.perf_counter()
+        train_seconds = 0.0  # time in training steps only (evaluation excluded)
         last_eval = None
         with progress, open(metrics_path, "a") as log:
             task = progress.add_task("train", total=tc.max_steps, completed=self.step, loss=0.0, psnr=0.0, its=0.0,
                                      ng=self.model.num_gaussians())
             window_t, window_n = time.perf_counter(), 0
-            while self.step < tc.max_steps:
+            window_seconds = 0.0
+            while self.step < tc.max_steps and not (tc.max_seconds and train_seconds >= tc.max_seconds):
+                t0 = time.perf_counter()
                 stats = self.train_step()
+                dt = time.perf_counter() - t0
+                train_seconds += dt
+                window_seconds += dt
                 window_n += 1
                 if self.step % tc.log_every == 0 or self.step == tc.max_steps:
-                    now = time.perf_counter()
-                    its = window_n / max(now - window_t, 1e-9)
-                    window_t, window_n = now, 0
-                    record = {"step": self.step, "wall": now - start_time, "its": its,
+                    its = window_n / max(window_seconds, 1e-9)
+                    window_seconds, window_n = 0.0, 0
+                    record = {"step": self.step, "wall": train_seconds, "its": its,
                               "num_gaussians": self.model.num_gaussians(), **stats}
                     log.write(json.dumps(record) + "\n")
                     log.flush()
@@ -225,13 +231,17 @@ class Trainer:
                                     ng=record["num_gaussians"])
                 if tc.eval_every and self.step % tc.eval_every == 0 and self.step < tc.max_steps:
                     last_eval = self.evaluate()
-                    log.write(json.dumps({"step": self.step, "eval": last_eval}) + "\n")
+                    log.write(json.dumps({"step": self.step, "wall": train_seconds, "eval": last_eval}) + "\n")
                 if self.step % tc.checkpoint_every == 0 or self.step == tc.max_steps:
                     self.save_checkpoint()
             progress.update(task, completed=self.step)
+        if self.step % tc.checkpoint_every != 0 and self.step != tc.max_steps:
+            self.save_checkpoint()  # stopped by the time budget
         last_eval = self.evaluate()
+        last_eval["train_seconds"] = train_seconds
+        last_eval["peak_rss_mb"] = peak_rss_mb()
         with open(metrics_path, "a") as log:
-            log.write(json.dumps({"step": self.step, "eval": last_eval, "wall": time.perf_counter() - start_time}) + "\n")
+            log.write(json.dumps({"step": self.step, "wall": train_seconds, "eval": last_eval, "final": True}) + "\n")
         return last_eval
 
     # ------------------------------------------------------------------ evaluation
@@ -277,6 +287,13 @@ class Trainer:
         torch.set_rng_state(state["rng_torch"])
         self.sampler.set_state(state["rng_sampler"])
         self.step = int(state["step"])
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, in MB (Linux ru_maxrss is in KB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def find_checkpoint(path: Path) -> Path:

@@ -1,0 +1,386 @@
+"""Human pose pipeline (OmniRe paper 4.2): per-camera SMPL tracklets -> per-track world poses.
+
+Input: :class:`HumanTracklet` s, each one person tracked in one camera with per-frame SMPL
+estimates (global orientation in that camera's OpenCV frame, 23 body-joint rotations,
+optional betas) and 2D boxes, from any pose-estimator plugin (registry
+``pose_estimators``, hook ``omnire_register_pose_estimators``). Steps:
+
+(a) :func:`match_tracklets`: per camera, tracklets are assigned one-to-one to the scene's
+    3D pedestrian tracks by the maximum mean IoU between the tracklet boxes and the
+    projected 3D boxes over the tracklet's frames (Hungarian assignment);
+(b) :func:`complete_rotations`: frames without an estimate (occluded, missed, or whose
+    match was too weak) get rotations SLERPed from the neighbouring observed frames; frames
+    before the first / after the last observation hold the nearest one;
+(c) :func:`sequences_from_tracklets`: the global orientation goes to the world frame with
+    the camera's rotation; the translation is *not* taken from the estimator: nodes place
+    the body at the 3D box centre.
+
+:func:`prepare_human_poses` runs the whole thing for a scene and fills
+``scene.human_poses``: sequences a dataparser already provided (e.g. the reference
+implementation's ``humanpose/smpl.pkl``) are kept and SLERP-completed; otherwise an
+estimator runs when one is given; otherwise (``fallback="neutral"``) a pedestrian starts
+from a neutral standing pose facing its track heading and relies on pose refinement.
+Each sequence's ``source`` says which path it took.
+
+Rotations are SMPL conventions (DESIGN.md section 3): canonical body frame x = body's left,
+y up, z forward; ``body_pose`` relative to the parent joint and to the template's rest pose.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Optional, Protocol
+
+import numpy as np
+
+from omnire.data.scene import ActorTrack, HumanPoseSequence, SceneData
+
+# SMPL canonical body axes -> box axes (x heading, z up): body front (+z) -> +x,
+# body left (+x) -> +y, body up (+y) -> +z.
+BODY_TO_BOX = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+@dataclasses.dataclass
+class HumanTracklet:
+    """One person tracked in one camera, with per-frame SMPL estimates.
+
+    Attributes:
+        camera: camera index into ``scene.cameras``.
+        frames: (T,) frame indices (increasing).
+        boxes: (T, 4) x0, y0, x1, y1 pixel boxes at the loaded image resolution.
+        global_orient: (T, 3, 3) body-to-camera rotation (camera OpenCV axes).
+        body_pose: (T, 23, 3, 3) joint rotations relative to the parents.
+        betas: (T, B) shape coefficients (B may be 0).
+        source: estimator name.
+        key: optional estimator-side id (e.g. the region the tracklet was cut from).
+    """
+
+    camera: int
+    frames: np.ndarray
+    boxes: np.ndarray
+    global_orient: np.ndarray
+    body_pose: np.ndarray
+    betas: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0)))
+    source: str = "estimator"
+    key: Any = None
+
+
+class PoseEstimator(Protocol):
+    """What a ``PoseEstimatorSpec.factory()`` returns."""
+
+    name: str
+
+    def estimate(self, scene: SceneData, camera: int, rois: dict[int, list[tuple[Any, np.ndarray]]]) -> list[HumanTracklet]:
+        """Tracklets seen by ``camera``. ``rois`` maps frame -> [(key, (4,) box)] of the
+        projected pedestrian boxes, as hints for estimators that work on crops (others may
+        ignore them and detect on the full image)."""
+        ...
+
+
+# ---------------------------------------------------------------------------------- rotations
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) -> (..., 4) wxyz unit quaternions with w >= 0."""
+    from scipy.spatial.transform import Rotation
+
+    shape = R.shape[:-2]
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()  # xyzw
+    q = np.concatenate([q[:, 3:], q[:, :3]], axis=1)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q.reshape(*shape, 4)
+
+
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """(..., 4) wxyz -> (..., 3, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    shape = q.shape[:-1]
+    q = q.reshape(-1, 4)
+    return Rotation.from_quat(np.concatenate([q[:, 1:], q[:, :1]], axis=1)).as_matrix().reshape(*shape, 3, 3)
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Spherical interpolation of (..., 4) unit quaternions; ``w`` broadcasts to (...)."""
+    w = np.asarray(w, dtype=np.float64)[..., None]
+    dot = (q0 * q1).sum(-1, keepdims=True)
+    q1 = np.where(dot < 0, -q1, q1)  # shortest arc
+    dot = np.abs(dot).clip(max=1.0)
+    theta = np.arccos(dot)
+    s = np.sin(theta)
+    near = s < 1e-6
+    a = np.where(near, 1 - w, np.sin((1 - w) * theta) / np.where(near, 1, s))
+    b = np.where(near, w, np.sin(w * theta) / np.where(near, 1, s))
+    q = a * q0 + b * q1
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def complete_rotations(rots: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Fill frames without an estimate.
+
+    Args:
+        rots: (F, ..., 3, 3) rotations; rows where ``valid`` is False are ignored.
+        valid: (F,) bool.
+    Returns:
+        (F, ..., 3, 3): observed rows unchanged (bit-exact), gaps SLERPed between the
+        enclosing observed rows, rows before the first / after the last observation equal
+        to the nearest observed one. All rows identity when nothing is observed.
+    """
+    rots = np.asarray(rots, dtype=np.float64)
+    out = rots.copy()
+    obs = np.flatnonzero(valid)
+    F = rots.shape[0]
+    if len(obs) == 0:
+        out[:] = np.eye(3)
+        return out
+    missing = np.flatnonzero(~np.asarray(valid, bool))
+    if len(missing) == 0:
+        return out
+    nxt = np.searchsorted(obs, missing)  # index in obs of the next observed frame
+    prev = np.clip(nxt - 1, 0, len(obs) - 1)
+    nxt_c = np.clip(nxt, 0, len(obs) - 1)
+    p, n = obs[prev], obs[nxt_c]
+    before, after = nxt == 0, nxt == len(obs)
+    w = np.where(n == p, 0.0, (missing - p) / np.maximum(n - p, 1))
+    w = np.where(before, 1.0, np.where(after, 0.0, w))  # hold the nearest outside the range
+    q0, q1 = rotmat_to_quat(rots[p]), rotmat_to_quat(rots[n])
+    w_b = w.reshape((-1,) + (1,) * (q0.ndim - 2))
+    out[missing] = quat_to_rotmat(slerp(q0, q1, np.broadcast_to(w_b, q0.shape[:-1])))
+    assert out.shape[0] == F
+    return out
+
+
+def complete_sequence(seq: HumanPoseSequence) -> HumanPoseSequence:
+    """The sequence with every non-``valid`` frame re-filled by :func:`complete_rotations`."""
+    if seq.valid.all() or not seq.valid.any():
+        return seq
+    return dataclasses.replace(seq, global_orient=complete_rotations(seq.global_orient, seq.valid),
+                               body_pose=complete_rotations(seq.body_pose, seq.valid))
+
+
+# ---------------------------------------------------------------------------------- matching
+def project_box(track: ActorTrack, scene: SceneData, camera: int, frame: int, near: float = 0.1) -> Optional[np.ndarray]:
+    """(4,) x0, y0, x1, y1 of the track's 3D box projected into ``camera`` at ``frame``,
+    clipped to the image; None when absent, behind the camera or outside the image."""
+    if not track.present[frame]:
+        return None
+    corners = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)]) * track.size
+    world = corners @ track.poses[frame][:3, :3].T + track.poses[frame][:3, 3]
+    cam = scene.cameras[camera]
+    w2c = np.linalg.inv(cam.cam_to_world[frame])
+    p = world @ w2c[:3, :3].T + w2c[:3, 3]
+    if (p[:, 2] < near).any():
+        return None
+    uv = p[:, :2] / p[:, 2:] @ cam.intrinsics[:2, :2].T + cam.intrinsics[:2, 2]
+    box = np.array([uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()])
+    box = np.clip(box, 0, [cam.width, cam.height, cam.width, cam.height])
+    if box[2] - box[0] < 1 or box[3] - box[1] < 1:
+        return None
+    return box
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """IoU of two (4,) x0, y0, x1, y1 boxes."""
+    iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = iw * ih
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+def tracklet_ious(scene: SceneData, tracklet: HumanTracklet, tracks: list[ActorTrack]) -> np.ndarray:
+    """(T, J) IoU of each tracklet box with each track's projected box (0 where not projectable)."""
+    out = np.zeros((len(tracklet.frames), len(tracks)))
+    for j, track in enumerate(tracks):
+        for i, f in enumerate(tracklet.frames):
+            box = project_box(track, scene, tracklet.camera, int(f))
+            if box is not None:
+                out[i, j] = box_iou(tracklet.boxes[i], box)
+    return out
+
+
+def match_tracklets(scene: SceneData, tracklets: list[HumanTracklet], tracks: Optional[list[ActorTrack]] = None,
+                    min_iou: float = 0.2) -> dict[int, str]:
+    """Assign tracklets to 3D tracks (default: the scene's human tracks).
+
+    Per camera, score[k, j] = mean over tracklet k's frames of IoU(box, projected box of
+    track j); a Hungarian assignment maximises the total score, and pairs below ``min_iou``
+    are dropped. Returns {tracklet index: track id}; a track may receive one tracklet per
+    camera.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    tracks = [t for t in scene.tracks if t.category == "human"] if tracks is None else tracks
+    out: dict[int, str] = {}
+    if not tracks:
+        return out
+    for cam in sorted({t.camera for t in tracklets}):
+        idx = [k for k, t in enumerate(tracklets) if t.camera == cam and len(t.frames)]
+        if not idx:
+            continue
+        score = np.stack([tracklet_ious(scene, tracklets[k], tracks).mean(0) for k in idx])  # (K, J)
+        rows, cols = linear_sum_assignment(score, maximize=True)
+        for r, c in zip(rows, cols):
+            if score[r, c] >= min_iou:
+                out[idx[r]] = tracks[c].track_id
+    return out
+
+
+def sequences_from_tracklets(scene: SceneData, tracklets: list[HumanTracklet], assignment: dict[int, str],
+                             min_frame_iou: float = 0.1) -> dict[str, HumanPoseSequence]:
+    """World-frame, SLERP-completed pose sequences of the matched tracks.
+
+    Per frame, among the matched tracklets that see the track there, the observation whose
+    box overlaps the projected 3D box best is kept (below ``min_frame_iou`` it is treated as
+    missing); its global orientation is rotated to the world with the camera's rotation at
+    that frame. Betas: mean over the kept observations.
+    """
+    by_id = {t.track_id: t for t in scene.tracks}
+    F = scene.num_frames
+    out = {}
+    for tid in sorted(set(assignment.values())):
+        track = by_id[tid]
+        go = np.tile(np.eye(3), (F, 1, 1))
+        bp = np.tile(np.eye(3), (F, 23, 1, 1))
+        best = np.full(F, -1.0)
+        betas, sources = [], set()
+        for k, t in enumerate(tracklets):
+            if assignment.get(k) != tid:
+                continue
+            ious = tracklet_ious(scene, t, [track])[:, 0]
+            for i, f in enumerate(t.frames):
+                f = int(f)
+                if not track.present[f] or ious[i] < min_frame_iou or ious[i] <= best[f]:
+                    continue
+                best[f] = ious[i]
+                go[f] = scene.cameras[t.camera].cam_to_world[f][:3, :3] @ t.global_orient[i]
+                bp[f] = t.body_pose[i]
+                if t.betas.size:
+                    betas.append(t.betas[min(i, len(t.betas) - 1)])
+                sources.add(t.source)
+        valid = best >= 0
+        if not valid.any():
+            continue
+        b = np.mean(betas, axis=0) if betas and len({len(x) for x in betas}) == 1 else np.zeros(0)
+        out[tid] = HumanPoseSequence(tid, complete_rotations(go, valid), complete_rotations(bp, valid), b, valid,
+                                     source="+".join(sorted(sources)))
+    return out
+
+
+# ---------------------------------------------------------------------------------- neutral pose
+def _align(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotation (3, 3) taking direction ``a`` to direction ``b``."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    v, c = np.cross(a, b), float(a @ b)
+    if c < -1 + 1e-9:  # opposite: turn by pi about any axis orthogonal to a
+        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + K + K @ K / (1 + c)
+
+
+def neutral_body_pose(joints: np.ndarray, arm_abduction_deg: float = 8.0) -> np.ndarray:
+    """(23, 3, 3) standing pose for a template with rest joints ``joints`` (24, 3): every
+    joint at rest except the shoulders, which hang the upper arms down beside the body
+    (works for T-pose SMPL and A-pose templates alike)."""
+    bp = np.tile(np.eye(3), (23, 1, 1))
+    a = np.deg2rad(arm_abduction_deg)
+    for shoulder, elbow, side in ((16, 18, 1.0), (17, 19, -1.0)):  # x = body's left
+        bp[shoulder - 1] = _align(joints[elbow] - joints[shoulder], np.array([side * np.sin(a), -np.cos(a), 0.0]))
+    return bp
+
+
+def _hold_nearest(values: np.ndarray, present: np.ndarray) -> np.ndarray:
+    idx = np.flatnonzero(present)
+    nearest = idx[np.abs(np.arange(len(present))[:, None] - idx[None]).argmin(1)]
+    return values[nearest]
+
+
+def neutral_sequence(track: ActorTrack, joints: np.ndarray) -> HumanPoseSequence:
+    """Neutral standing pose facing the box heading at every frame (no observation: ``valid``
+    all False); absent frames hold the nearest present one."""
+    F = track.poses.shape[0]
+    go = _hold_nearest(track.poses[:, :3, :3], track.present) @ BODY_TO_BOX
+    bp = np.tile(neutral_body_pose(joints), (F, 1, 1, 1))
+    return HumanPoseSequence(track.track_id, go, bp, np.zeros(0), np.zeros(F, bool), source="neutral")
+
+
+# ---------------------------------------------------------------------------------- pipeline
+def estimator_tracklets(scene: SceneData, estimator: PoseEstimator, tracks: list[ActorTrack],
+                        min_box_height: float = 40.0) -> list[HumanTracklet]:
+    """Run ``estimator`` on every camera with the projected boxes of ``tracks`` (taller
+    than ``min_box_height`` pixels, training and held-out frames alike: poses of held-out
+    frames are interpolated by the nodes, not read from these) as hints."""
+    out = []
+    for cam in range(len(scene.cameras)):
+        rois: dict[int, list] = {}
+        for track in tracks:
+            for f in track.frames():
+                box = project_box(track, scene, cam, int(f))
+                if box is not None and box[3] - box[1] >= min_box_height:
+                    rois.setdefault(int(f), []).append((track.track_id, box))
+        if rois:
+            out.extend(estimator.estimate(scene, cam, rois))
+    return out
+
+
+def prepare_human_poses(scene: SceneData, estimator: Optional[PoseEstimator] = None,
+                        joints: Optional[np.ndarray] = None, fallback: str = "neutral",
+                        min_iou: float = 0.2) -> dict[str, str]:
+    """Fill ``scene.human_poses`` for every human track (idempotent).
+
+    Order: sequences already in the scene (dataparser, e.g. ``smpl.pkl``) are SLERP-completed;
+    the others come from ``estimator`` (matched by IoU, completed); the rest, with
+    ``fallback="neutral"``, get :func:`neutral_sequence` (``joints``: rest joints of the
+    body template, default the shipped one); with ``fallback="none"`` they get nothing.
+    Returns {track id: path} where path describes what happened (logged by the SMPL node).
+    """
+    if fallback not in ("neutral", "none"):
+        raise ValueError(f"fallback must be 'neutral' or 'none', got {fallback!r}")
+    humans = [t for t in scene.tracks if t.category == "human" and t.present.any()]
+    paths = {}
+    for t in humans:
+        seq = scene.human_poses.get(t.track_id)
+        if seq is not None:
+            scene.human_poses[t.track_id] = complete_sequence(seq)
+    todo = [t for t in humans if t.track_id not in scene.human_poses]
+    if todo and estimator is not None:
+        tracklets = estimator_tracklets(scene, estimator, todo)
+        assignment = match_tracklets(scene, tracklets, todo, min_iou=min_iou)
+        scene.human_poses.update(sequences_from_tracklets(scene, tracklets, assignment))
+        todo = [t for t in todo if t.track_id not in scene.human_poses]
+    for t in todo:
+        if fallback == "neutral":
+            if joints is None:
+                from omnire.body.template import load_template
+
+                joints = load_template().joints
+            scene.human_poses[t.track_id] = neutral_sequence(t, joints)
+    for t in humans:
+        seq = scene.human_poses.get(t.track_id)
+        paths[t.track_id] = "no pose sequence" if seq is None else describe_sequence(seq, t.present)
+    return paths
+
+
+def describe_sequence(seq: HumanPoseSequence, present: np.ndarray) -> str:
+    """One line saying where a sequence came from (for the training log)."""
+    if seq.source == "neutral":
+        return "neutral standing pose facing the box heading (no estimate; body poses refined in training)"
+    observed = int((seq.valid & present).sum())
+    return f"{seq.source}: {observed} observed frames, {int(present.sum()) - observed} completed by SLERP"
+
+
+def select_estimator(registry, name: str = "auto") -> Optional[PoseEstimator]:
+    """Build the named estimator (``auto``: the available one with the highest priority,
+    None when none is; ``none``: None)."""
+    if name == "none" or registry is None:
+        return None
+    if name != "auto":
+        spec = registry.get(name)
+        ok, why = spec.available()
+        if not ok:
+            raise RuntimeError(f"pose estimator {name!r} is not available: {why}")
+        return spec.factory()
+    for spec in sorted(registry, key=lambda s: -s.priority):
+        if spec.available()[0]:
+            return spec.factory()
+    return None
