@@ -23,7 +23,7 @@ Deviations (documented, all a flag away except the first two):
 - The output layer is zero-initialised so the field starts at the identity (no jump when
   the warm-up ends).
 - CPU default MLP: depth 6, width 128 (skip after layer depth // 2). The paper's 8 x 256
-  is ``--method.nodes.deformable_field.mlp-depth 8 --method.nodes.deformable_field.mlp-width 256``
+  is ``--method.nodes.deformable-field.mlp-depth 8 --method.nodes.deformable-field.mlp-width 256``
   (about 3-4x slower per step on CPU; see the plugin report for measured it/s).
 - Warm-up 500 steps by default (the paper uses 3000 of 40k steps; omnire's default
   training is 3000 steps).
@@ -32,7 +32,6 @@ Deviations (documented, all a flag away except the first two):
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Optional
 
 import numpy as np
@@ -40,47 +39,9 @@ import torch
 from torch import nn
 
 from omnire.gaussians import Gaussians
+from omnire.nn import DeformationMLP, positional_encoding
 from omnire.nodes.background import BackgroundConfig, init_background_params, static_gaussian_lrs
 from omnire.nodes.base import Node, NodeContext, ParamGroup
-
-
-def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
-    """(..., D) -> (..., 2 * num_freqs * D): sin and cos of 2^k pi x for k < num_freqs."""
-    freqs = (2.0 ** torch.arange(num_freqs, device=x.device, dtype=x.dtype)) * math.pi  # (L,)
-    angles = (x[..., None, :] * freqs[:, None]).flatten(-2)  # (..., L*D)
-    return torch.cat([torch.sin(angles), torch.cos(angles)], dim=-1)
-
-
-class DeformationMLP(nn.Module):
-    """ReLU MLP with one skip connection: (N, in_dim) -> (N, 10) = (d_mu 3, d_q 4, d_s 3).
-
-    ``depth`` hidden layers of ``width``; the input is concatenated to the output of hidden
-    layer ``skip`` (the paper: depth 8, width 256, skip 4). The output layer (the paper's
-    three heads, as one matrix) starts at zero.
-    """
-
-    def __init__(self, in_dim: int, depth: int, width: int, skip: int) -> None:
-        super().__init__()
-        self.skip = skip
-        layers = []
-        for i in range(depth):
-            d_in = in_dim if i == 0 else width
-            if i == skip and i > 0:
-                d_in += in_dim
-            layers.append(nn.Linear(d_in, width))
-        self.layers = nn.ModuleList(layers)
-        self.out = nn.Linear(width, 10)
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        h = x
-        for i, layer in enumerate(self.layers):
-            if i == self.skip and i > 0:
-                h = torch.cat([h, x], dim=-1)
-            h = torch.relu(layer(h))
-        o = self.out(h)
-        return o[:, :3], o[:, 3:7], o[:, 7:10]
 
 
 @dataclasses.dataclass

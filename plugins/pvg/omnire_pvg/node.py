@@ -29,8 +29,9 @@ a life span covering the whole sequence. Without LiDAR the background initialisa
 used with tau uniform over the sequence. Velocities start at 0.
 
 Deviations (see the plugin report): the velocity regulariser is per Gaussian rather than
-on a rendered velocity map (the core rasterizer renders colour only); no sky
-environment map and no sky-opacity loss in the preset (no sky node type in this plugin);
+on a rendered velocity map (the core rasterizer renders colour only); the preset has no
+sky environment map and no sky-opacity loss (the ``sky`` node type belongs to another
+distribution; a method config can add it next to ``pvg``);
 no position-aware densification thresholds (the core strategy has one global scale
 threshold); opacity o(t) is passed to the rasterizer as a logit computed in log space.
 """
