@@ -325,13 +325,14 @@ def estimator_tracklets(scene: SceneData, estimator: PoseEstimator, tracks: list
 
 def prepare_human_poses(scene: SceneData, estimator: Optional[PoseEstimator] = None,
                         joints: Optional[np.ndarray] = None, fallback: str = "neutral",
-                        min_iou: float = 0.2) -> dict[str, str]:
+                        min_iou: float = 0.2, min_box_height: float = 40.0) -> dict[str, str]:
     """Fill ``scene.human_poses`` for every human track (idempotent).
 
     Order: sequences already in the scene (dataparser, e.g. ``smpl.pkl``) are SLERP-completed;
     the others come from ``estimator`` (matched by IoU, completed); the rest, with
     ``fallback="neutral"``, get :func:`neutral_sequence` (``joints``: rest joints of the
     body template, default the shipped one); with ``fallback="none"`` they get nothing.
+    The estimator gets the projected boxes taller than ``min_box_height`` pixels as hints.
     Returns {track id: path} where path describes what happened (logged by the SMPL node).
     """
     if fallback not in ("neutral", "none"):
@@ -344,7 +345,7 @@ def prepare_human_poses(scene: SceneData, estimator: Optional[PoseEstimator] = N
             scene.human_poses[t.track_id] = complete_sequence(seq)
     todo = [t for t in humans if t.track_id not in scene.human_poses]
     if todo and estimator is not None:
-        tracklets = estimator_tracklets(scene, estimator, todo)
+        tracklets = estimator_tracklets(scene, estimator, todo, min_box_height)
         assignment = match_tracklets(scene, tracklets, todo, min_iou=min_iou)
         scene.human_poses.update(sequences_from_tracklets(scene, tracklets, assignment))
         todo = [t for t in todo if t.track_id not in scene.human_poses]

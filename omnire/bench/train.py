@@ -1,0 +1,182 @@
+"""``omnire bench train``: methods against each other, run time against error.
+
+Every method trains on the same scene (same frames, resolution, split) with the same step
+budget (optionally also a wall-clock budget), each in its own ``omnire train`` subprocess so
+peak memory is per method and one crash does not stop the others. Along the way the trainer
+evaluates at evenly spaced checkpoints, recording training wall time (evaluation excluded),
+PSNR / SSIM (full, human, vehicle; reconstruction and novel view), depth RMSE / Chamfer,
+Gaussian count, training it/s and rendering frames/s.
+
+Outputs in ``--output``: ``results.json`` (everything), ``results.md`` (a table in the
+paper's layout with the budget and the copy-nearest-frame baseline), ``psnr_vs_time.png``
+(novel-view PSNR against training time per method), and each method's run directory.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import tyro
+
+from omnire.io.atomic import atomic_write_text
+
+
+@dataclasses.dataclass
+class TrainBenchArgs:
+    """Train several methods with one budget on one scene and compare them."""
+
+    methods: tuple[str, ...] = ()
+    """Methods to compare (default: every registered method)."""
+    dataparser: str = "pandaset"
+    """Dataparser name."""
+    data: Path = Path("data/demo/pandaset_002")
+    """Scene directory."""
+    dataparser_args: str = "--scale 1.0"
+    """Extra dataparser flags as one string, identical for every method: --dataparser-args="--scale 0.5"."""
+    method_args: str = ""
+    """Extra flags for every method as one string: --method-args="--method.rasterizer cpu"."""
+    steps: int = 2000
+    """Iteration budget per method (learning-rate schedules span it)."""
+    seconds: float = 0.0
+    """Wall-clock training budget per method (0: none); training stops at whichever comes first."""
+    checkpoints: int = 4
+    """Evaluations along the way (evenly spaced steps)."""
+    threads: int = 0
+    """torch threads per run (0: default)."""
+    output: Path = Path("outputs/bench/train")
+    """Output directory."""
+    plot: bool = True
+    """Write psnr_vs_time.png (needs matplotlib)."""
+
+
+def _run_method(args: TrainBenchArgs, method: str) -> dict:
+    run_dir = args.output / "runs" / method
+    eval_every = max(1, args.steps // max(1, args.checkpoints))
+    cmd = [sys.executable, "-m", "omnire.cli", "train", method, args.dataparser, "--data", str(args.data),
+           *shlex.split(args.dataparser_args), *shlex.split(args.method_args),
+           "--trainer.max-steps", str(args.steps), "--trainer.max-seconds", str(args.seconds),
+           "--trainer.eval-every", str(eval_every), "--trainer.checkpoint-every", str(args.steps),
+           "--trainer.threads", str(args.threads), "--trainer.output-dir", str(run_dir.parent),
+           "--trainer.run-name", method, "--trainer.no-progress"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, COLUMNS="200"))
+    elapsed = time.perf_counter() - t0
+    result = {"method": method, "command": cmd[2:], "exit_code": proc.returncode, "elapsed_s": elapsed}
+    if proc.returncode != 0:
+        result["error"] = (proc.stderr or proc.stdout)[-2000:]
+        return result
+    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
+    result["curve"] = [{"step": r["step"], "train_seconds": r["wall"], **_flatten(r["eval"])}
+                       for r in records if "eval" in r]
+    steps = [r for r in records if "its" in r]
+    result["train_its"] = (steps[-1]["step"] / steps[-1]["wall"]) if steps and steps[-1]["wall"] > 0 else float("nan")
+    final = next(r for r in reversed(records) if r.get("final"))
+    result["final"] = _flatten(final["eval"])
+    result["steps_done"] = final["step"]
+    return result
+
+
+def _flatten(ev: dict) -> dict:
+    out = {k: v for k, v in ev.items() if not isinstance(v, dict)}
+    for split in ("reconstruction", "novel_view"):
+        for k, v in ev.get(split, {}).items():
+            out[f"{split}.{k}"] = v
+    return out
+
+
+def _fmt(v, d=2) -> str:
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{d}f}"
+
+
+def markdown_table(results: list[dict], args: TrainBenchArgs) -> str:
+    budget = f"{args.steps} steps" + (f" or {args.seconds:.0f} s of training" if args.seconds else "")
+    lines = [
+        f"Scene: `{args.data}` ({args.dataparser} {args.dataparser_args}); budget per method: {budget}; "
+        f"same frames, resolution and split for every method.",
+        "",
+        "| Method | Recon PSNR | Recon SSIM | Recon human PSNR | Recon vehicle PSNR | NVS PSNR | NVS SSIM | "
+        "NVS human PSNR | NVS vehicle PSNR | Depth RMSE (m) | Chamfer (m) | Gaussians | train it/s | render fps | "
+        "peak MB | train s |",
+        "|" + "---|" * 16,
+    ]
+    copy = None
+    for r in results:
+        if "final" not in r:
+            lines.append(f"| {r['method']} | failed (exit {r['exit_code']}) |" + " |" * 14)
+            continue
+        f = r["final"]
+        copy = copy or f
+        lines.append("| " + " | ".join([
+            r["method"], _fmt(f.get("reconstruction.full_psnr")), _fmt(f.get("reconstruction.full_ssim"), 3),
+            _fmt(f.get("reconstruction.human_psnr")), _fmt(f.get("reconstruction.vehicle_psnr")),
+            _fmt(f.get("novel_view.full_psnr")), _fmt(f.get("novel_view.full_ssim"), 3),
+            _fmt(f.get("novel_view.human_psnr")), _fmt(f.get("novel_view.vehicle_psnr")),
+            _fmt(f.get("novel_view.depth_rmse")), _fmt(f.get("novel_view.depth_chamfer"), 3),
+            str(f.get("num_gaussians", "-")), _fmt(r.get("train_its")), _fmt(f.get("novel_view.render_fps")),
+            _fmt(f.get("peak_rss_mb"), 0), _fmt(f.get("train_seconds"), 0)]) + " |")
+    if copy:
+        lines.append("| copy nearest training frame | - | - | - | - | " + " | ".join([
+            _fmt(copy.get("novel_view.copy_full_psnr")), _fmt(copy.get("novel_view.copy_full_ssim"), 3),
+            _fmt(copy.get("novel_view.copy_human_psnr")), _fmt(copy.get("novel_view.copy_vehicle_psnr"))])
+            + " | - | - | - | - | - | - | - |")
+    lines += ["", "Depth metrics are on held-out frames. NVS = novel view synthesis on the held-out frames "
+              "(every 10th frame, all cameras)."]
+    return "\n".join(lines) + "\n"
+
+
+def plot(results: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=120)
+    for r in results:
+        curve = [c for c in r.get("curve", []) if c.get("novel_view.full_psnr") is not None]
+        if curve:
+            ax.plot([c["train_seconds"] for c in curve], [c["novel_view.full_psnr"] for c in curve], "o-", label=r["method"])
+    copy = next((r["final"].get("novel_view.copy_full_psnr") for r in results if "final" in r), None)
+    if copy is not None:
+        ax.axhline(copy, color="grey", ls="--", label="copy nearest frame")
+    ax.set_xlabel("training time (s, evaluation excluded)")
+    ax.set_ylabel("novel-view PSNR (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp)
+    os.replace(tmp, path)
+
+
+def main(argv: list[str]) -> int:
+    from rich.console import Console
+
+    from omnire.plugins import load_plugins
+
+    args = tyro.cli(TrainBenchArgs, args=argv, prog="omnire bench train")
+    methods = list(args.methods) or load_plugins().methods.names()
+    console = Console()
+    args.output.mkdir(parents=True, exist_ok=True)
+    results = []
+    for m in methods:
+        console.print(f"[bold]{m}[/]: training ({args.steps} steps)...")
+        r = _run_method(args, m)
+        results.append(r)
+        status = "ok" if r["exit_code"] == 0 else f"FAILED: {r.get('error', '')[-300:]}"
+        console.print(f"  {m}: {status} in {r['elapsed_s']:.0f} s")
+        atomic_write_text(args.output / "results.json", json.dumps(
+            {"args": json.loads(json.dumps(dataclasses.asdict(args), default=str)), "results": results}, indent=2))
+    table = markdown_table(results, args)
+    atomic_write_text(args.output / "results.md", table)
+    if args.plot:
+        plot(results, args.output / "psnr_vs_time.png")
+    console.print(table)
+    return 0 if all(r["exit_code"] == 0 for r in results) else 1
