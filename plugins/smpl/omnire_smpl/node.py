@@ -1,0 +1,338 @@
+"""SMPL actor node: pedestrians as Gaussians bound to a skinned body template.
+
+World Gaussians of person i at frame t (OmniRe: world = T_h(t) (x) LBS(theta(t), G)):
+
+    x_world = R_box(t) G_i(t) LBS(theta_i(t), x_canon) + t_box(t)
+
+- ``x_canon``: Gaussian means in the person's canonical body frame (SMPL axes: x = body's
+  left, y up, z forward; the template's rest pose), initialised on template vertices
+  (area-weighted subsample). Each Gaussian carries the skinning weights of the vertex it
+  was made from (buffers ``skin_joints`` / ``skin_weights``, K largest weights), so the
+  core densification, generic over per-Gaussian keys and buffers, keeps working.
+- ``theta_i(t)``: 23 body-joint rotations; ``G_i(t)``: global orientation relative to the
+  box (world orientation = R_box G). Both start from the pose sequence in
+  ``scene.human_poses`` and are refined (right-multiplied axis-angle deltas per frame,
+  lr 5e-5 -> 1e-5). Held-out frames get no image gradients, so their rotations are SLERPed
+  between the refined poses of the nearest training frames of that person.
+- ``R_box, t_box``: the shared :class:`~omnire.nodes.actors.ActorPoses` (box centre and its
+  refinement; the box rotation delta is not optimised, the refined global orientation
+  covers it). The template's vertical centre sits at the box centre.
+- Size: each template is scaled to its box height (the shipped template is 1.63 m) unless
+  the pose sequence has betas and the template shape blend shapes (then betas give the
+  shape, unscaled).
+- Pose blend shapes (``posedirs`` of SMPL files) are not applied: Gaussians, not vertices,
+  are skinned, and densified Gaussians have no vertex of their own.
+
+Regulariser ``pose_smoothness`` (DESIGN.md section 4): for the people present at t and a
+random d in {1..max_offset}, 0.5 * mean |r(t-d) + r(t+d) - 2 r(t)| over the 6D rotation
+features (first two matrix columns) of the 24 rotations.
+
+Skinning runs once per frame for all people present (one FK over P bodies, one gather);
+absent people cost nothing.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+from torch import nn
+
+from omnire.body.template import BodyTemplate, load_template
+from omnire.data.scene import HumanPoseSequence
+from omnire.gaussians import Gaussians
+from omnire.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
+from omnire.humanpose import neutral_body_pose, prepare_human_poses
+from omnire.nodes.actors import ActorPoses, axis_angle_to_rotmat, rows_present
+from omnire.nodes.base import Node, NodeConfig, NodeContext, ParamGroup, init_gaussian_params
+from omnire.pointcloud import colour_from_images, knn_scales
+from omnire_smpl.lbs import blend_transforms, forward_kinematics, sparse_weights
+
+
+@dataclasses.dataclass
+class SMPLConfig(NodeConfig):
+    """Pedestrians with body poses: Gaussians skinned by a body template."""
+
+    _target: type = dataclasses.field(default_factory=lambda: SMPLNode)
+    smpl_model: Optional[Path] = None
+    """SMPL model pickle (e.g. SMPL_NEUTRAL.pkl, licence-restricted: bring your own) or an Anny-style .npz; default: the shipped open Anny-derived template."""
+    gaussians_per_person: int = 3000
+    """Gaussians per person at initialisation (area-weighted subsample of the template vertices; 0 = one per vertex)."""
+    scale_to_box: bool = True
+    """Scale each template to its box height (skipped when betas and shape blend shapes give the shape)."""
+    refine_poses: bool = True
+    """Learn per-frame body poses and global orientations (body-pose refinement)."""
+    lr_pose: float = 5e-5
+    """Body pose / global orientation refinement lr (decays to lr_pose_final)."""
+    lr_pose_final: float = 1e-5
+    """Final body pose lr."""
+    smoothness_max_offset: int = 5
+    """Pose smoothness compares frames t-d, t, t+d with d random in 1..this."""
+    refine_boxes: bool = True
+    """Learn per-frame corrections of the box centre."""
+    lr_box_translation: float = 5e-4
+    """Box translation refinement lr."""
+    sh_degree: int = 3
+    """Highest SH degree."""
+    init_opacity: float = 0.1
+    """Initial opacity."""
+    prune_margin: float = 0.25
+    """Prune Gaussians that leave their canonical body's bounding box by more than this (m)."""
+    lr_means: float = 1.6e-4
+    """Means lr (x scene radius) decaying to lr_means_final."""
+    lr_means_final: float = 1.6e-6
+    """Final means lr (x scene radius)."""
+    lr_sh0: float = 2.5e-3
+    """SH DC lr."""
+    lr_shN: float = 1.25e-4
+    """SH higher bands lr."""
+    lr_opacity: float = 0.05
+    """Opacity lr."""
+    lr_scales: float = 5e-3
+    """Log-scale lr."""
+    lr_quats: float = 1e-3
+    """Quaternion lr."""
+
+
+def person_template(template: BodyTemplate, seq: HumanPoseSequence, box_height: float, scale_to_box: bool
+                    ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Canonical vertices (V, 3) and joints (24, 3) of one person: betas applied when
+    possible, vertical centre moved to the origin (= box centre), scaled to ``box_height``
+    unless betas gave the shape. Returns (vertices, joints, scale)."""
+    v, J = template.vertices, template.joints
+    shaped = template.shapedirs is not None and seq.betas.size > 0
+    if shaped:
+        k = min(seq.betas.shape[-1], template.shapedirs.shape[2])
+        v = v + template.shapedirs[:, :, :k] @ seq.betas[:k]
+        if template.J_regressor is not None:
+            J = template.J_regressor @ v
+    lo, hi = v[:, 1].min(), v[:, 1].max()
+    centre = np.array([0.0, (lo + hi) / 2, 0.0])
+    s = box_height / (hi - lo) if scale_to_box and not shaped else 1.0
+    return (v - centre) * s, (J - centre) * s, float(s)
+
+
+def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V,) a third of the area of the faces around each vertex."""
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    out = np.zeros(len(vertices))
+    np.add.at(out, faces.reshape(-1), np.repeat(area / 3, 3))
+    return out
+
+
+def rot6(R: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) -> (..., 6): the first two columns (continuous rotation features)."""
+    return R[..., :, :2].reshape(*R.shape[:-2], 6)
+
+
+def slerp_rotmats(R0: torch.Tensor, R1: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """SLERP between (..., 3, 3) rotations with weights ``w`` (...,)."""
+    q0, q1 = rotmat_to_quat(R0), rotmat_to_quat(R1)
+    dot = (q0 * q1).sum(-1, keepdim=True)
+    q1 = torch.where(dot < 0, -q1, q1)
+    theta = torch.arccos(dot.abs().clamp(max=1 - 1e-7))
+    s = torch.sin(theta)
+    w = w[..., None]
+    near = s < 1e-5
+    s_safe = torch.where(near, torch.ones_like(s), s)
+    a = torch.where(near, 1 - w, torch.sin((1 - w) * theta) / s_safe)
+    b = torch.where(near, w, torch.sin(w * theta) / s_safe)
+    return quat_to_rotmat(a * q0 + b * q1)
+
+
+class SMPLNode(Node):
+    def __init__(self, config: SMPLConfig, context: NodeContext, tracks: list) -> None:
+        super().__init__()
+        self.config = config
+        self.scene_radius = context.scene_radius
+        scene = context.scene
+        device = context.device
+        template = load_template(config.smpl_model)
+        self.template_source = template.source
+        self.parents = [int(p) for p in template.parents]
+        # Normally done by the node type's accepts(); repeated here (idempotent) so a node
+        # built directly still finds a sequence for every person.
+        self.pose_paths = prepare_human_poses(scene, joints=template.joints)
+        rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
+        self.track_ids = [t.track_id for t in tracks]
+        I, F = len(tracks), scene.num_frames
+        self.poses = ActorPoses(tracks, scene.train_frames, config.refine_boxes, device)
+        go_rel = np.tile(np.eye(3), (I, F, 1, 1))
+        body = np.tile(np.eye(3), (I, F, 23, 1, 1))
+        joints_all, bbox, points, colours, owners, weights, scales = [], [], [], [], [], [], []
+        areas = vertex_areas(template.vertices, template.faces)
+        neutral = neutral_body_pose(template.joints)
+        for i, track in enumerate(tracks):
+            seq = scene.human_poses[track.track_id]
+            bp = np.tile(neutral, (F, 1, 1, 1)) if seq.source == "neutral" else seq.body_pose
+            box_R = np.where(track.present[:, None, None], track.poses[:, :3, :3], np.eye(3))
+            go_rel[i] = np.einsum("fji,fjk->fik", box_R, seq.global_orient)  # R_box^T G_world
+            body[i] = bp
+            verts, joints, _ = person_template(template, seq, float(track.size[2]), config.scale_to_box)
+            joints_all.append(joints)
+            bbox.append(np.stack([verts.min(0), verts.max(0)]))
+            n = template.num_vertices if config.gaussians_per_person <= 0 else min(config.gaussians_per_person,
+                                                                                   template.num_vertices)
+            sel = np.sort(rng.choice(template.num_vertices, n, replace=False, p=areas / areas.sum()))
+            pts = verts[sel]
+            points.append(pts)
+            weights.append(template.weights[sel])
+            owners.append(np.full(n, i))
+            scales.append(np.clip(knn_scales(pts), 0.003, 0.05))
+            colours.append(self._initial_colours(scene, context.images, track, seq, go_rel[i], body[i],
+                                                 template, verts, joints, sel))
+            self.pose_paths.setdefault(track.track_id, seq.source)
+        pts = torch.as_tensor(np.concatenate(points), dtype=torch.float32)
+        params = init_gaussian_params(pts, torch.as_tensor(np.concatenate(colours), dtype=torch.float32),
+                                      torch.as_tensor(np.concatenate(scales), dtype=torch.float32),
+                                      config.sh_degree, config.init_opacity, context.generator)
+        for k, v in params.items():
+            self.gaussian_params[k] = nn.Parameter(v.to(device))
+        idx, w = sparse_weights(torch.as_tensor(np.concatenate(weights), dtype=torch.float32))
+        self.gaussian_buffers["instance"] = torch.as_tensor(np.concatenate(owners), dtype=torch.long, device=device)
+        self.gaussian_buffers["skin_joints"] = idx.to(device)
+        self.gaussian_buffers["skin_weights"] = w.to(device)
+        self.register_buffer("joints", torch.as_tensor(np.stack(joints_all), dtype=torch.float32, device=device))
+        self.register_buffer("canon_bbox", torch.as_tensor(np.stack(bbox), dtype=torch.float32, device=device))
+        self.register_buffer("base_orient", torch.as_tensor(go_rel, dtype=torch.float32, device=device))
+        self.register_buffer("base_body", torch.as_tensor(body, dtype=torch.float32, device=device))
+        refine = config.refine_poses
+        self.delta_orient = nn.Parameter(torch.zeros(I, F, 3, device=device), requires_grad=refine)
+        self.delta_body = nn.Parameter(torch.zeros(I, F, 23, 3, device=device), requires_grad=refine)
+        self._init_interpolation(tracks, scene.train_frames, device)
+        self._report(tracks)
+
+    # ------------------------------------------------------------------ set-up helpers
+    def _init_interpolation(self, tracks: list, train_frames: np.ndarray, device) -> None:
+        """Per person and frame: the training frames of that person to SLERP from (prev,
+        next, weight); (f, f, 0) for its own training frames."""
+        I, F = len(tracks), self.base_body.shape[1]
+        prev = np.tile(np.arange(F), (I, 1))
+        nxt = prev.copy()
+        w = np.zeros((I, F))
+        train = np.zeros(F, bool)
+        train[np.asarray(train_frames, dtype=int)] = True
+        for i, track in enumerate(tracks):
+            own = np.flatnonzero(track.present & train)
+            if len(own) == 0:
+                continue
+            for f in np.flatnonzero(~(track.present & train)):
+                lo, hi = own[own < f], own[own > f]
+                p = int(lo[-1]) if len(lo) else int(hi[0])
+                n = int(hi[0]) if len(hi) else int(lo[-1])
+                prev[i, f], nxt[i, f] = p, n
+                w[i, f] = 0.0 if n == p else (f - p) / (n - p)
+        self.register_buffer("interp_prev", torch.as_tensor(prev, device=device), persistent=False)
+        self.register_buffer("interp_next", torch.as_tensor(nxt, device=device), persistent=False)
+        self.register_buffer("interp_w", torch.as_tensor(w, dtype=torch.float32, device=device), persistent=False)
+
+    @staticmethod
+    def _initial_colours(scene, images, track, seq, go_rel, body, template, verts, joints, sel) -> np.ndarray:
+        """Colours of the selected canonical vertices, posed at the training frame where the
+        person's box is closest to a camera and projected into that frame's images."""
+        from omnire.body.lbs import lbs
+
+        frames = np.intersect1d(track.frames(), scene.train_frames)
+        if images is None or len(frames) == 0:
+            return np.full((len(sel), 3), 0.5, dtype=np.float32)
+        cams = np.stack([c.cam_to_world[frames, :3, 3] for c in scene.cameras])  # (C, T, 3)
+        dist = np.linalg.norm(cams - track.poses[frames, :3, 3][None], axis=-1).min(0)
+        f = int(frames[np.argmin(dist)])
+        person = dataclasses.replace(template, vertices=verts, joints=joints, shapedirs=None, posedirs=None)
+        posed = lbs(person, np.eye(3), body[f], pose_blend=False).vertices[sel]
+        world = posed @ (track.poses[f][:3, :3] @ go_rel[f]).T + track.poses[f][:3, 3]
+        colours, _ = colour_from_images(world, scene, images, np.array([f]))
+        return colours
+
+    def _report(self, tracks: list) -> None:
+        from rich.console import Console
+
+        console = Console(stderr=True, highlight=False)
+        console.print(f"[bold]smpl[/]: {len(tracks)} pedestrians, template {Path(self.template_source).name}, "
+                      f"{self.num_gaussians} Gaussians")
+        for t in tracks:
+            console.print(f"  {t.track_id} ({t.class_name}): {self.pose_paths.get(t.track_id, '?')}")
+
+    # ------------------------------------------------------------------ poses
+    def _refined(self, ids: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+        """(P, 24, 3, 3) refined rotations (root = orientation relative to the box) of people
+        ``ids`` (P,) at their frames ``frames`` (P,)."""
+        R = torch.cat([self.base_orient[ids, frames][:, None], self.base_body[ids, frames]], 1)
+        if self.config.refine_poses:
+            d = torch.cat([self.delta_orient[ids, frames][:, None], self.delta_body[ids, frames]], 1)
+            R = R @ axis_angle_to_rotmat(d)
+        return R
+
+    def pose_rotations(self, ids: torch.Tensor, frame: int) -> torch.Tensor:
+        """(P, 24, 3, 3) rotations of people ``ids`` at ``frame``; frames that are not
+        training frames of a person are SLERPed between its neighbouring training frames."""
+        p, n, w = self.interp_prev[ids, frame], self.interp_next[ids, frame], self.interp_w[ids, frame]
+        R_p = self._refined(ids, p)
+        interp = w > 0
+        if not bool(interp.any()):
+            return R_p
+        R_n = self._refined(ids[interp], n[interp])
+        mixed = slerp_rotmats(R_p[interp], R_n, w[interp][:, None].expand(-1, 24))
+        return R_p.index_put((torch.nonzero(interp).flatten(),), mixed)
+
+    # ------------------------------------------------------------------ Node API
+    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None):
+        ids, R_box, t_box = self.poses.at(frame)
+        if len(ids) == 0:
+            return None  # absent people cost nothing
+        instance = self.gaussian_buffers["instance"]
+        rows = rows_present(instance, ids, self.poses.num_instances)
+        g = Gaussians.from_params(self.gaussian_params, rows)
+        rots = self.pose_rotations(ids, frame)  # (P, 24, 3, 3)
+        eye = torch.eye(3, device=rots.device).expand(len(ids), 1, 3, 3)
+        _, A = forward_kinematics(self.joints[ids], self.parents, torch.cat([eye, rots[:, 1:]], 1))
+        lookup = torch.full((self.poses.num_instances,), -1, dtype=torch.long, device=ids.device)
+        lookup[ids] = torch.arange(len(ids), device=ids.device)
+        slot = lookup[instance[rows]]
+        T = blend_transforms(A, slot, self.gaussian_buffers["skin_joints"][rows],
+                             self.gaussian_buffers["skin_weights"][rows])  # (M, 3, 4)
+        R_tot = R_box @ rots[:, 0]  # (P, 3, 3) body-to-world orientation
+        R_full = R_tot[slot] @ T[:, :, :3]
+        means = torch.einsum("mij,mj->mi", R_full, g.means) + torch.einsum("mij,mj->mi", R_tot[slot], T[:, :, 3]) \
+            + t_box[slot]
+        quats = quat_multiply(rotmat_to_quat(R_full), g.quats)
+        return dataclasses.replace(g, means=means, quats=quats), rows
+
+    def regularization(self, frame: int, time: float) -> dict[str, torch.Tensor]:
+        if not self.config.refine_poses or self.poses.num_instances == 0:
+            return {}
+        F = self.base_body.shape[1]
+        # d random in 1..max_offset, shortened near the ends of the log rather than skipped
+        d = min(int(torch.randint(1, self.config.smoothness_max_offset + 1, (1,))), frame, F - 1 - frame)
+        if d <= 0:
+            return {}
+        present = self.poses.present
+        ids = torch.nonzero(present[:, frame] & present[:, frame - d] & present[:, frame + d]).flatten()
+        if len(ids) == 0:
+            return {}
+        r = [rot6(self.pose_rotations(ids, f)) for f in (frame - d, frame, frame + d)]
+        return {"pose_smoothness": 0.5 * (r[0] + r[2] - 2 * r[1]).abs().mean()}
+
+    def gaussian_lrs(self):
+        c, r = self.config, self.scene_radius
+        return {"means": (c.lr_means * r, c.lr_means_final * r), "sh0": (c.lr_sh0, None), "shN": (c.lr_shN, None),
+                "opacities": (c.lr_opacity, None), "scales": (c.lr_scales, None), "quats": (c.lr_quats, None)}
+
+    def param_groups(self) -> list[ParamGroup]:
+        groups = super().param_groups()
+        if self.config.refine_poses and self.poses.num_instances:
+            groups.append(ParamGroup("human_pose", [self.delta_orient, self.delta_body], self.config.lr_pose,
+                                     self.config.lr_pose_final))
+        # Box rotation refinement would duplicate the global-orientation refinement: translation only.
+        groups += [g for g in self.poses.param_groups(0.0, self.config.lr_box_translation) if g.name == "box_translation"]
+        return groups
+
+    @torch.no_grad()
+    def extra_prune_mask(self) -> torch.Tensor:
+        box = self.canon_bbox[self.gaussian_buffers["instance"]]  # (N, 2, 3)
+        m = self.config.prune_margin
+        x = self.gaussian_params["means"]
+        return ((x < box[:, 0] - m) | (x > box[:, 1] + m)).any(dim=-1)
