@@ -133,6 +133,7 @@ class DeformableNode(Node):
         return self.mlp(feats)
 
     def gaussians_at(self, frame: int, time: float, step: Optional[int] = None):
+        self._last_offsets = None  # the regulariser only sees what this call renders
         ids, R, t = self.poses.at(frame)
         if len(ids) == 0:
             return None
@@ -140,7 +141,6 @@ class DeformableNode(Node):
         rows = rows_present(instance_all, ids, self.poses.num_instances)
         instance = instance_all[rows]
         g = Gaussians.from_params(self.gaussian_params, rows)
-        self._last_offsets = None
         if step is None or step >= self.config.warmup_steps:
             d_mu, d_q, d_s = self.deformation(g.means, instance, time)
             q = g.quats / g.quats.norm(dim=-1, keepdim=True).clamp_min(1e-8)

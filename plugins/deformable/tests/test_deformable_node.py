@@ -63,3 +63,12 @@ def test_static_other_actors_fold_into_background(tmp_path):
     assert not _accepts(cone, scene)
     cone.poses[:, 0, 3] = 7.0 + np.arange(len(cone.poses))
     assert _accepts(cone, scene)
+
+
+def test_regulariser_forgets_frames_without_instances(tmp_path):
+    scene, node = build(tmp_path)
+    node.gaussians_at(0, 0.0, step=None)
+    scene.tracks[0].present[:] = False
+    node.poses.present[:] = False
+    assert node.gaussians_at(1, 0.1, step=None) is None
+    assert node.regularization(1, 0.1) == {}
