@@ -13,12 +13,12 @@ import numpy as np
 import torch
 
 from omnire.gaussians import Gaussians
-from omnire.nodes.base import Node, NodeConfig, NodeContext, init_gaussian_params
+from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, init_gaussian_params
 from omnire.pointcloud import colour_from_images, far_shell, knn_scales, points_in_box, to_tensor, voxel_downsample
 
 
 @dataclasses.dataclass
-class BackgroundConfig(NodeConfig):
+class BackgroundConfig(GaussianNodeConfig):
     """Static background Gaussians."""
 
     _target: type = dataclasses.field(default_factory=lambda: BackgroundNode)
@@ -30,24 +30,6 @@ class BackgroundConfig(NodeConfig):
     """Random points in a far shell (1-3x the scene radius) for content beyond LiDAR."""
     num_random_points_without_lidar: int = 50_000
     """Points scattered in the camera frusta when the scene has no LiDAR."""
-    sh_degree: int = 3
-    """Highest SH degree (bands are switched on progressively by the trainer)."""
-    init_opacity: float = 0.1
-    """Initial opacity."""
-    lr_means: float = 1.6e-4
-    """Means lr (x scene radius), decaying to lr_means_final."""
-    lr_means_final: float = 1.6e-6
-    """Final means lr (x scene radius)."""
-    lr_sh0: float = 2.5e-3
-    """SH DC lr."""
-    lr_shN: float = 1.25e-4
-    """SH higher bands lr."""
-    lr_opacity: float = 0.05
-    """Opacity-logit lr."""
-    lr_scales: float = 5e-3
-    """Log-scale lr."""
-    lr_quats: float = 1e-3
-    """Quaternion lr."""
 
 
 def lidar_points_for_init(scene, frames: np.ndarray, excluded_tracks: list) -> np.ndarray:
@@ -95,19 +77,6 @@ def init_background_params(config: BackgroundConfig, context: NodeContext) -> di
     return {k: v.to(context.device) for k, v in params.items()}
 
 
-def static_gaussian_lrs(config: BackgroundConfig, scene_radius: float) -> dict[str, tuple[float, Optional[float]]]:
-    """Learning rates of static-scene Gaussians (means scale with the scene radius)."""
-    c, r = config, scene_radius
-    return {
-        "means": (c.lr_means * r, c.lr_means_final * r),
-        "sh0": (c.lr_sh0, None),
-        "shN": (c.lr_shN, None),
-        "opacities": (c.lr_opacity, None),
-        "scales": (c.lr_scales, None),
-        "quats": (c.lr_quats, None),
-    }
-
-
 class BackgroundNode(Node):
     def __init__(self, config: BackgroundConfig, context: NodeContext, tracks: Optional[list] = None) -> None:
         super().__init__()
@@ -121,7 +90,7 @@ class BackgroundNode(Node):
         return Gaussians.from_params(self.gaussian_params), rows
 
     def gaussian_lrs(self):
-        return static_gaussian_lrs(self.config, self.scene_radius)
+        return self.config.gaussian_lrs(self.scene_radius)
 
 
 def _frustum_points(scene, count: int, rng: np.random.Generator) -> np.ndarray:

@@ -46,6 +46,38 @@ class NodeConfig(InstantiateConfig):
 
 
 @dataclasses.dataclass
+class GaussianNodeConfig(NodeConfig):
+    """Fields every Gaussian-holding node shares: SH degree, initial opacity and the
+    per-Gaussian learning rates (reference values, DESIGN.md section 4)."""
+
+    sh_degree: int = 3
+    """Highest SH degree (bands are switched on progressively by the trainer)."""
+    init_opacity: float = 0.1
+    """Initial opacity."""
+    lr_means: float = 1.6e-4
+    """Means lr (x scene radius), decaying to lr_means_final."""
+    lr_means_final: float = 1.6e-6
+    """Final means lr (x scene radius)."""
+    lr_sh0: float = 2.5e-3
+    """SH DC lr."""
+    lr_shN: float = 1.25e-4
+    """SH higher bands lr."""
+    lr_opacity: float = 0.05
+    """Opacity-logit lr."""
+    lr_scales: float = 5e-3
+    """Log-scale lr."""
+    lr_quats: float = 1e-3
+    """Quaternion lr."""
+
+    def gaussian_lrs(self, scene_radius: float) -> dict[str, tuple[float, Optional[float]]]:
+        """key -> (lr, final lr or None); means scale with the scene radius."""
+        r = scene_radius
+        return {"means": (self.lr_means * r, self.lr_means_final * r), "sh0": (self.lr_sh0, None),
+                "shN": (self.lr_shN, None), "opacities": (self.lr_opacity, None), "scales": (self.lr_scales, None),
+                "quats": (self.lr_quats, None)}
+
+
+@dataclasses.dataclass
 class NodeContext:
     """What a node gets when it is built.
 

@@ -25,12 +25,12 @@ from torch import nn
 from omnire.gaussians import Gaussians
 from omnire.nn import DeformationMLP, positional_encoding
 from omnire.nodes.actors import ActorPoses, box_local_lidar, colour_box_points, rows_present, transform_instances
-from omnire.nodes.base import Node, NodeConfig, NodeContext, ParamGroup, init_gaussian_params
+from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, ParamGroup, init_gaussian_params
 from omnire.pointcloud import knn_scales, to_tensor, voxel_downsample
 
 
 @dataclasses.dataclass
-class DeformableConfig(NodeConfig):
+class DeformableConfig(GaussianNodeConfig):
     """Deformable actors. Reference network: 8 x 256, skip at 4, 10 + 10 frequencies,
     16-d embeddings, on after 3000 steps; the CPU default is smaller (a flag away)."""
 
@@ -41,10 +41,6 @@ class DeformableConfig(NodeConfig):
     """Cap on LiDAR points per instance."""
     random_points_per_instance: int = 300
     """Random points in each box."""
-    sh_degree: int = 3
-    """Highest SH degree."""
-    init_opacity: float = 0.1
-    """Initial opacity."""
     mlp_depth: int = 6
     """Hidden layers of the shared network (reference: 8)."""
     mlp_width: int = 128
@@ -71,20 +67,6 @@ class DeformableConfig(NodeConfig):
     """Box rotation refinement lr."""
     lr_box_translation: float = 5e-4
     """Box translation refinement lr."""
-    lr_means: float = 1.6e-4
-    """Means lr (x scene radius), decaying to lr_means_final."""
-    lr_means_final: float = 1.6e-6
-    """Final means lr (x scene radius)."""
-    lr_sh0: float = 2.5e-3
-    """SH DC lr."""
-    lr_shN: float = 1.25e-4
-    """SH higher bands lr."""
-    lr_opacity: float = 0.05
-    """Opacity lr."""
-    lr_scales: float = 5e-3
-    """Log-scale lr."""
-    lr_quats: float = 1e-3
-    """Quaternion lr."""
 
 
 class DeformableNode(Node):
@@ -158,9 +140,7 @@ class DeformableNode(Node):
         return {"deformable_box": torch.relu(means.abs() - limit).sum(-1).mean()}
 
     def gaussian_lrs(self):
-        c, r = self.config, self.scene_radius
-        return {"means": (c.lr_means * r, c.lr_means_final * r), "sh0": (c.lr_sh0, None), "shN": (c.lr_shN, None),
-                "opacities": (c.lr_opacity, None), "scales": (c.lr_scales, None), "quats": (c.lr_quats, None)}
+        return self.config.gaussian_lrs(self.scene_radius)
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config

@@ -40,7 +40,7 @@ from torch import nn
 
 from omnire.gaussians import Gaussians
 from omnire.nn import DeformationMLP, positional_encoding
-from omnire.nodes.background import BackgroundConfig, init_background_params, static_gaussian_lrs
+from omnire.nodes.background import BackgroundConfig, init_background_params
 from omnire.nodes.base import Node, NodeContext, ParamGroup
 
 
@@ -133,7 +133,7 @@ class DeformableFieldNode(Node):
         return g, None  # every row, in order
 
     def gaussian_lrs(self):
-        return static_gaussian_lrs(self.config, self.scene_radius)
+        return self.config.gaussian_lrs(self.scene_radius)
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config

@@ -47,8 +47,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from omnire.gaussians import Gaussians
-from omnire.nodes.background import (BackgroundConfig, init_background_params, lidar_points_for_init,
-                                     static_gaussian_lrs)
+from omnire.nodes.background import BackgroundConfig, init_background_params, lidar_points_for_init
 from omnire.nodes.base import Node, NodeContext, init_gaussian_params
 from omnire.pointcloud import colour_from_images, far_shell, knn_scales, to_tensor, voxel_downsample
 
@@ -205,7 +204,7 @@ class PVGNode(Node):
 
     def gaussian_lrs(self):
         c = self.config
-        lrs = static_gaussian_lrs(c, self.scene_radius)
+        lrs = c.gaussian_lrs(self.scene_radius)
         lrs.update(life_peak=(c.lr_life_peak, None), life_span=(c.lr_life_span, None),
                    velocity=(c.lr_velocity * self.scene_radius, None))
         return lrs

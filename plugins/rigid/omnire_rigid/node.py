@@ -16,12 +16,12 @@ import torch
 
 from omnire.gaussians import Gaussians
 from omnire.nodes.actors import ActorPoses, box_local_lidar, colour_box_points, rows_present, transform_instances
-from omnire.nodes.base import Node, NodeConfig, NodeContext, ParamGroup, init_gaussian_params
+from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, ParamGroup, init_gaussian_params
 from omnire.pointcloud import knn_scales, to_tensor, voxel_downsample
 
 
 @dataclasses.dataclass
-class RigidConfig(NodeConfig):
+class RigidConfig(GaussianNodeConfig):
     """Rigid actors (vehicles)."""
 
     _target: type = dataclasses.field(default_factory=lambda: RigidNode)
@@ -31,10 +31,6 @@ class RigidConfig(NodeConfig):
     """Cap on LiDAR points per instance after downsampling."""
     random_points_per_instance: int = 300
     """Random points inside each box (covers surfaces LiDAR missed)."""
-    sh_degree: int = 3
-    """Highest SH degree."""
-    init_opacity: float = 0.1
-    """Initial opacity."""
     refine_boxes: bool = True
     """Learn per-frame box pose corrections (box refinement)."""
     lr_box_rotation: float = 1e-5
@@ -43,20 +39,6 @@ class RigidConfig(NodeConfig):
     """Box translation refinement lr."""
     prune_outside: float = 0.5
     """Prune Gaussians farther outside their box than this fraction of its half-size."""
-    lr_means: float = 1.6e-4
-    """Means lr (x scene radius) decaying to lr_means_final."""
-    lr_means_final: float = 1.6e-6
-    """Final means lr (x scene radius)."""
-    lr_sh0: float = 2.5e-3
-    """SH DC lr."""
-    lr_shN: float = 1.25e-4
-    """SH higher bands lr."""
-    lr_opacity: float = 0.05
-    """Opacity lr."""
-    lr_scales: float = 5e-3
-    """Log-scale lr."""
-    lr_quats: float = 1e-3
-    """Quaternion lr."""
 
 
 class RigidNode(Node):
@@ -103,9 +85,7 @@ class RigidNode(Node):
         return transform_instances(g, instance[rows], ids, R, t), rows
 
     def gaussian_lrs(self):
-        c, r = self.config, self.scene_radius
-        return {"means": (c.lr_means * r, c.lr_means_final * r), "sh0": (c.lr_sh0, None), "shN": (c.lr_shN, None),
-                "opacities": (c.lr_opacity, None), "scales": (c.lr_scales, None), "quats": (c.lr_quats, None)}
+        return self.config.gaussian_lrs(self.scene_radius)
 
     def param_groups(self) -> list[ParamGroup]:
         return super().param_groups() + self.poses.param_groups(self.config.lr_box_rotation,

@@ -46,13 +46,13 @@ from omnire.gaussians import Gaussians
 from omnire.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
 from omnire.humanpose import neutral_body_pose, prepare_human_poses
 from omnire.nodes.actors import ActorPoses, axis_angle_to_rotmat, rows_present
-from omnire.nodes.base import Node, NodeConfig, NodeContext, ParamGroup, init_gaussian_params
+from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, ParamGroup, init_gaussian_params
 from omnire.pointcloud import colour_from_images, knn_scales
 from omnire_smpl.lbs import blend_transforms, forward_kinematics, sparse_weights
 
 
 @dataclasses.dataclass
-class SMPLConfig(NodeConfig):
+class SMPLConfig(GaussianNodeConfig):
     """Pedestrians with body poses: Gaussians skinned by a body template."""
 
     _target: type = dataclasses.field(default_factory=lambda: SMPLNode)
@@ -74,26 +74,8 @@ class SMPLConfig(NodeConfig):
     """Learn per-frame corrections of the box centre."""
     lr_box_translation: float = 5e-4
     """Box translation refinement lr."""
-    sh_degree: int = 3
-    """Highest SH degree."""
-    init_opacity: float = 0.1
-    """Initial opacity."""
     prune_margin: float = 0.25
     """Prune Gaussians that leave their canonical body's bounding box by more than this (m)."""
-    lr_means: float = 1.6e-4
-    """Means lr (x scene radius) decaying to lr_means_final."""
-    lr_means_final: float = 1.6e-6
-    """Final means lr (x scene radius)."""
-    lr_sh0: float = 2.5e-3
-    """SH DC lr."""
-    lr_shN: float = 1.25e-4
-    """SH higher bands lr."""
-    lr_opacity: float = 0.05
-    """Opacity lr."""
-    lr_scales: float = 5e-3
-    """Log-scale lr."""
-    lr_quats: float = 1e-3
-    """Quaternion lr."""
 
 
 def person_template(template: BodyTemplate, seq: HumanPoseSequence, box_height: float, scale_to_box: bool
@@ -317,9 +299,7 @@ class SMPLNode(Node):
         return {"pose_smoothness": 0.5 * (r[0] + r[2] - 2 * r[1]).abs().mean()}
 
     def gaussian_lrs(self):
-        c, r = self.config, self.scene_radius
-        return {"means": (c.lr_means * r, c.lr_means_final * r), "sh0": (c.lr_sh0, None), "shN": (c.lr_shN, None),
-                "opacities": (c.lr_opacity, None), "scales": (c.lr_scales, None), "quats": (c.lr_quats, None)}
+        return self.config.gaussian_lrs(self.scene_radius)
 
     def param_groups(self) -> list[ParamGroup]:
         groups = super().param_groups()
