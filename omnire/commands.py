@@ -207,7 +207,7 @@ def plugins_main(argv: list[str], plugins) -> int:
 
 
 def bench_main(argv: list[str], plugins) -> int:
-    benches = {"raster": "omnire.bench.raster", "train": "omnire.bench.train"}
+    benches = {"raster": "omnire.bench.raster", "train": "omnire.bench.train", "skip": "omnire.bench.skip"}
     if not argv or argv[0] not in benches:
         Console(stderr=True).print(f"usage: omnire bench {{{'|'.join(benches)}}} [flags]")
         return 2

@@ -1,0 +1,135 @@
+"""``omnire bench skip``: measure that the framework skips what a scene does not need.
+
+1. No humans: on the scene with its pedestrian and cyclist tracks removed, ``omnire`` must
+   build no SMPL or deformable node and cost the same per step as ``streetgs``.
+2. Absent actors: adding many short-lived actors that are absent from the rendered frames
+   must not change the cost of a step at those frames.
+
+Both run in one process with the same seed, scene, rasterizer and views; per-step times are
+medians over ``steps`` training steps after ``warmup`` steps. Output: JSON and a table.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+from omnire.io.atomic import atomic_write_text
+
+
+@dataclasses.dataclass
+class SkipBenchArgs:
+    """Measure the cost of what a scene does not need."""
+
+    data: Path = Path("data/demo/pandaset_002")
+    """PandaSet-layout scene."""
+    scale: float = 0.5
+    """Image scale."""
+    steps: int = 30
+    """Timed steps per configuration."""
+    warmup: int = 5
+    """Untimed steps first."""
+    extra_actors: tuple[int, ...] = (0, 100, 400)
+    """Counts of added short-lived actors (absent from the timed frames)."""
+    output: Path = Path("outputs/bench/skip.json")
+    """JSON output."""
+
+
+def _trainer(plugins, method: str, scene, seed: int = 0):
+    from omnire.trainer import TrainConfig, Trainer, TrainerConfig
+
+    cfg = plugins.methods.get(method).config_factory()
+    cfg.densify.refine_start = 10**9  # fixed Gaussian count: time the same work
+    tc = TrainerConfig(max_steps=10**6, progress=False, seed=seed, output_dir=Path("/tmp/omnire-bench-skip"))
+    return Trainer(TrainConfig(method, "pandaset", cfg, None, tc), plugins, argv=[], scene=scene)
+
+
+def _time_steps(trainer, views, warmup: int, steps: int) -> float:
+    trainer.train_views = views
+    for v in views:  # decode every image first: time rendering and optimisation only
+        trainer.target(v)
+        trainer.lidar.get(v)
+    for _ in range(warmup):
+        trainer.train_step()
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        trainer.train_step()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1000
+
+
+def main(argv: list[str]) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from omnire.plugins import load_plugins
+
+    args = tyro.cli(SkipBenchArgs, args=argv, prog="omnire bench skip")
+    plugins = load_plugins()
+    cfg = plugins.dataparsers.get("pandaset").config_factory()
+    cfg.data, cfg.scale = args.data, args.scale
+    scene = cfg.setup().parse().validate()
+    out: dict = {"args": {k: str(v) for k, v in dataclasses.asdict(args).items()}}
+
+    no_humans = copy.copy(scene)
+    no_humans.tracks = [t for t in scene.tracks if t.category not in ("human", "cyclist")]
+    no_humans.human_poses = {}
+    rows = []
+    for method in ("streetgs", "omnire"):
+        tr = _trainer(plugins, method, no_humans)
+        ms = _time_steps(tr, tr.train_views, args.warmup, args.steps)
+        rows.append({"method": method, "nodes": list(tr.model.nodes), "ms_per_step": ms,
+                     "gaussians": tr.model.num_gaussians()})
+    out["no_humans"] = rows
+    out["no_humans_overhead"] = rows[1]["ms_per_step"] / rows[0]["ms_per_step"] - 1
+
+    # Absent actors: copies of a real vehicle, present only in the first two frames; steps are
+    # timed on frames from the second half, where none of them is present.
+    from omnire.nodes.actors import visible_in_cameras
+
+    early = np.array([0, 1])
+    base = next(t for t in scene.tracks if t.category == "vehicle" and t.present[:2].all()
+                and visible_in_cameras(t, scene, early))
+    late = scene.train_frames[scene.train_frames >= scene.num_frames // 2]
+    absent_rows = []
+    for k in args.extra_actors:
+        s = copy.copy(scene)
+        s.tracks = list(scene.tracks)
+        for i in range(k):
+            t = copy.deepcopy(base)
+            t.track_id = f"extra-{i}"
+            t.present = np.zeros_like(t.present)
+            t.present[:2] = True
+            s.tracks.append(t)
+        tr = _trainer(plugins, "streetgs", s)
+        views = [v for v in tr.train_views if v.frame in set(late.tolist())]
+        ms = _time_steps(tr, views, args.warmup, args.steps)
+        n_rigid = len(tr.model.assignment.get("rigid", []))
+        absent_rows.append({"extra_actors": k, "rigid_instances": n_rigid, "ms_per_step": ms,
+                            "gaussians": tr.model.num_gaussians()})
+    out["absent_actors"] = absent_rows
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.output, json.dumps(out, indent=2))
+
+    console = Console()
+    t1 = Table(title="scene without humans: omnire vs streetgs")
+    for c in ("method", "nodes", "Gaussians", "ms / step"):
+        t1.add_column(c)
+    for r in rows:
+        t1.add_row(r["method"], ", ".join(r["nodes"]), str(r["gaussians"]), f"{r['ms_per_step']:.1f}")
+    console.print(t1)
+    console.print(f"omnire overhead: {100 * out['no_humans_overhead']:+.1f}%")
+    t2 = Table(title="actors absent from the rendered frames (streetgs, frames of the second half)")
+    for c in ("extra actors", "rigid instances", "Gaussians", "ms / step"):
+        t2.add_column(c)
+    for r in absent_rows:
+        t2.add_row(str(r["extra_actors"]), str(r["rigid_instances"]), str(r["gaussians"]), f"{r['ms_per_step']:.1f}")
+    console.print(t2)
+    return 0
