@@ -104,7 +104,7 @@ class Trainer:
         self.model = SceneModel(config.method, self.scene, plugins.node_types, self.images, self.rasterizer,
                                 self.device, seed=tc.seed)
         self.optimizers = Optimizers(dict(self.model.nodes), tc.max_steps)
-        self.strategy = AbsGradStrategy(config.method.densify, self.model.scene_radius)
+        self.strategy = AbsGradStrategy(config.method.densify, self.model.scene_radius, tc.max_steps)
         self.lidar = LidarDepthTargets(self.scene, self.device)
         self.dynamic_masks = DynamicMasks(self.scene, self.images, self.device)
         has_env = any(m.is_environment for m in self.model.nodes.values())

@@ -112,3 +112,14 @@ def test_exponential_lr_schedule():
     assert math.isclose(exponential_lr(1e-2, 1e-4, 100, 100), 1e-4, rel_tol=1e-9)
     assert exponential_lr(1e-2, None, 50, 100) == 1e-2
     assert exponential_lr(1e-2, None, 5, 100, warmup_steps=10) == 5e-3
+
+
+def test_no_growth_or_reset_in_the_second_half_of_a_short_run():
+    node, opt = setup(4)
+    strat = AbsGradStrategy(DensifyConfig(refine_start=0, refine_every=1000, reset_every=40), 1.0, max_steps=100)
+    assert strat.refine_stop == 50
+    before = node.gaussian_params["opacities"].detach().clone()
+    strat.step({"toy": node}, opt, 80)  # would be a reset step, but growth has stopped
+    assert torch.equal(node.gaussian_params["opacities"], before)
+    strat.step({"toy": node}, opt, 40)
+    assert torch.sigmoid(node.gaussian_params["opacities"]).max() <= 0.0100001
