@@ -1,0 +1,1 @@
+"""Reader for the reference implementation's processed-scene format."""

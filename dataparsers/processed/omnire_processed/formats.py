@@ -1,0 +1,128 @@
+"""Facts about the reference implementation's processed-scene format (DESIGN.md section 5):
+per-dataset camera ids, LiDAR column layouts, camera-axis conventions and class names.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+SOURCES = ("waymo", "nuscenes", "nuplan", "argoverse", "pandaset", "kitti")
+
+# Waymo camera axes (x forward, y left, z up) -> OpenCV: cam_to_ego_opencv = cam_to_ego @ M.
+WAYMO_TO_OPENCV = np.array(
+    [[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
+
+CAMERA_NAMES: dict[str, tuple[str, ...]] = {
+    "waymo": ("front_camera", "front_left_camera", "front_right_camera", "left_camera", "right_camera"),
+    "pandaset": ("front_camera", "front_left_camera", "front_right_camera", "left_camera", "right_camera",
+                 "back_camera"),
+    "nuscenes": ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK_RIGHT", "CAM_BACK"),
+    "argoverse": ("ring_front_center", "ring_front_left", "ring_front_right", "ring_side_left", "ring_side_right",
+                  "ring_rear_left", "ring_rear_right"),
+    "kitti": ("CAM_LEFT", "CAM_RIGHT"),
+    "nuplan": ("CAM_F0", "CAM_L0", "CAM_R0", "CAM_L1", "CAM_R1", "CAM_L2", "CAM_R2", "CAM_B0"),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class LidarLayout:
+    """float32 columns of one LiDAR row. ``origin`` is the column of the sensor origin x
+    (None: the sensor sits at the pose origin); ``xyz`` the column of point x;
+    ``intensity`` its column (None if absent)."""
+
+    columns: int
+    xyz: int
+    origin: int | None
+    intensity: int | None
+    description: str
+
+
+LIDAR_LAYOUTS: dict[str, LidarLayout] = {
+    "waymo": LidarLayout(14, 3, 0, 11, "origin xyz, point xyz, flow xyz, flow class, ground, intensity, "
+                                        "elongation, laser id (ego frame)"),
+    "nuscenes": LidarLayout(4, 0, None, 3, "xyz, intensity (lidar frame, posed by lidar_pose/)"),
+    "argoverse": LidarLayout(4, 0, None, 3, "xyz, intensity (ego frame)"),
+    "kitti": LidarLayout(4, 0, None, 3, "xyz, intensity (ego frame)"),
+    "pandaset": LidarLayout(5, 0, None, 3, "xyz, intensity, sensor id (ego frame)"),
+    "nuplan": LidarLayout(6, 0, None, 3, "xyz, intensity, ring, lidar id (ego frame)"),
+}
+
+# Dataset class name -> actor category (omnire.data.scene.CATEGORIES). "vehicle" is the rigid
+# category: like the reference implementation, rigid street furniture tracked as boxes
+# (cones, barrels, signs, trailers) goes there too. Cyclists and riders -> "cyclist";
+# other non-rigid actors (animals, strollers, wheelchairs) -> "other".
+CLASS_CATEGORIES: dict[str, dict[str, str]] = {
+    "waymo": {"Vehicle": "vehicle", "Pedestrian": "human", "Cyclist": "cyclist", "Sign": "other"},
+    "nuscenes": {
+        "vehicle.bus.bendy": "vehicle", "vehicle.bus.rigid": "vehicle", "vehicle.car": "vehicle",
+        "vehicle.construction": "vehicle", "vehicle.emergency.ambulance": "vehicle",
+        "vehicle.emergency.police": "vehicle", "vehicle.motorcycle": "vehicle", "vehicle.trailer": "vehicle",
+        "vehicle.truck": "vehicle", "vehicle.bicycle": "cyclist",
+        "human.pedestrian.adult": "human", "human.pedestrian.child": "human",
+        "human.pedestrian.construction_worker": "human", "human.pedestrian.police_officer": "human",
+        "human.pedestrian.personal_mobility": "other", "human.pedestrian.stroller": "other",
+        "human.pedestrian.wheelchair": "other", "animal": "other",
+        "movable_object.barrier": "other", "movable_object.debris": "other",
+        "movable_object.pushable_pullable": "other", "movable_object.trafficcone": "other",
+        "static_object.bicycle_rack": "other",
+    },
+    "pandaset": {
+        "Bus": "vehicle", "Car": "vehicle", "Emergency Vehicle": "vehicle", "Medium-sized Truck": "vehicle",
+        "Motorcycle": "vehicle", "Motorized Scooter": "vehicle", "Other Vehicle - Construction Vehicle": "vehicle",
+        "Other Vehicle - Pedicab": "vehicle", "Other Vehicle - Uncommon": "vehicle", "Pickup Truck": "vehicle",
+        "Semi-truck": "vehicle", "Train": "vehicle", "Tram / Subway": "vehicle", "Towed Object": "vehicle",
+        "Pedestrian": "human", "Pedestrian with Object": "human",
+        "Bicycle": "cyclist", "Animals - Bird": "other", "Animals - Other": "other",
+        "Personal Mobility Device": "other", "Construction Signs": "other", "Cones": "other",
+        "Pylons": "other", "Road Barriers": "other", "Rolling Containers": "other", "Signs": "other",
+        "Temporary Construction Barriers": "other",
+    },
+    "argoverse": {
+        "ARTICULATED_BUS": "vehicle", "BOLLARD": "vehicle", "BOX_TRUCK": "vehicle", "BUS": "vehicle",
+        "CONSTRUCTION_BARREL": "vehicle", "CONSTRUCTION_CONE": "vehicle", "LARGE_VEHICLE": "vehicle",
+        "MESSAGE_BOARD_TRAILER": "vehicle", "MOBILE_PEDESTRIAN_CROSSING_SIGN": "vehicle", "MOTORCYCLE": "vehicle",
+        "RAILED_VEHICLE": "vehicle", "REGULAR_VEHICLE": "vehicle", "SCHOOL_BUS": "vehicle", "SIGN": "vehicle",
+        "STOP_SIGN": "vehicle", "TRAFFIC_LIGHT_TRAILER": "vehicle", "TRUCK": "vehicle", "TRUCK_CAB": "vehicle",
+        "VEHICULAR_TRAILER": "vehicle",
+        "PEDESTRIAN": "human", "OFFICIAL_SIGNALER": "human",
+        "BICYCLE": "cyclist", "BICYCLIST": "cyclist", "MOTORCYCLIST": "cyclist", "WHEELED_RIDER": "cyclist",
+        "ANIMAL": "other", "DOG": "other", "STROLLER": "other", "WHEELCHAIR": "other", "WHEELED_DEVICE": "other",
+    },
+    "kitti": {
+        "Car": "vehicle", "Van": "vehicle", "Truck": "vehicle", "Tram": "vehicle",
+        "Pedestrian": "human", "Person_sitting": "human", "Cyclist": "cyclist", "Misc": "other",
+    },
+    "nuplan": {
+        "vehicle": "vehicle", "pedestrian": "human", "bicycle": "cyclist", "traffic_cone": "other",
+        "barrier": "other", "czone_sign": "other", "generic_object": "other",
+    },
+}
+
+
+def category_of(class_name: str, source: str) -> str | None:
+    """Category of a class name: the source's table first, then any table (processed scenes
+    sometimes mix conventions), then case-insensitively. None when unknown."""
+    table = CLASS_CATEGORIES.get(source, {})
+    if class_name in table:
+        return table[class_name]
+    for other in CLASS_CATEGORIES.values():
+        if class_name in other:
+            return other[class_name]
+    low = class_name.lower()
+    for other in CLASS_CATEGORIES.values():
+        for name, cat in other.items():
+            if name.lower() == low:
+                return cat
+    return None
+
+
+def detect_source_from_classes(class_names: set[str]) -> str | None:
+    """The dataset whose class table covers the most of these names (ties: None)."""
+    if not class_names:
+        return None
+    scores = {s: len(class_names & set(t)) for s, t in CLASS_CATEGORIES.items()}
+    best = max(scores.values())
+    winners = [s for s, v in scores.items() if v == best]
+    return winners[0] if best > 0 and len(winners) == 1 else None

@@ -1,0 +1,1 @@
+"""Synthetic driving scenes with ground truth, written in the processed-scene format."""

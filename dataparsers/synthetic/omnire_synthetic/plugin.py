@@ -1,0 +1,35 @@
+"""omnire plugin: the ``synthetic`` dataparser and the ``omnire synth`` command."""
+from __future__ import annotations
+
+from omnire.hookspecs import hookimpl
+from omnire.registry import CommandSpec, DataparserSpec
+
+
+def _config():
+    from omnire_synthetic.dataparser import SyntheticDataparserConfig
+
+    return SyntheticDataparserConfig()
+
+
+def _synth_main(argv: list[str], plugins=None) -> int:
+    # The core CLI may pass the loaded plugins as a second argument; synth does not need them.
+    from omnire_synthetic.cli import main
+
+    return main(argv)
+
+
+@hookimpl
+def omnire_register_dataparsers(registry) -> None:
+    registry.register(
+        DataparserSpec(
+            "synthetic",
+            "Synthetic street scene with ground truth: generated into --data if it is not there yet, "
+            "then read with the processed-scene reader",
+            _config,
+        )
+    )
+
+
+@hookimpl
+def omnire_register_commands(registry) -> None:
+    registry.register(CommandSpec("synth", "Generate a synthetic driving scene with ground truth", _synth_main))
