@@ -65,7 +65,7 @@ def _subcommand_union(types: list):
 def parse_train_args(argv: list[str], plugins) -> TrainConfig:
     parsed = tyro.cli(
         train_cli_type(plugins), args=argv, prog="omnire train",
-        config=(tyro.conf.OmitSubcommandPrefixes, tyro.conf.CascadeSubcommandArgs),
+        config=(tyro.conf.OmitSubcommandPrefixes, tyro.conf.CascadeSubcommandArgs, tyro.conf.SuppressFixed),
     )
     dp_name = next(s.name for s in plugins.dataparsers if type(s.config_factory()) is type(parsed.dataparser))
     return TrainConfig(type(parsed)._method_name, dp_name, parsed.method, parsed.dataparser, parsed.trainer)

@@ -93,6 +93,7 @@ _ALLOWED_IMPORTS = {
     ("_codecs", "encode"),  # protocol-2 pickles store bytes as codecs.encode(str, "latin1")
     ("pandas", "DataFrame"),
     ("pandas", "Index"),
+    ("pandas", "RangeIndex"),
     ("pandas", "Series"),
     ("pandas._libs.internals", "_unpickle_block"),
     ("pandas.core.frame", "DataFrame"),
