@@ -8,7 +8,7 @@ PYTHON ?= python3
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.13.0
 DEMO_METHOD ?= omnire
-DEMO_STEPS ?= 1200
+DEMO_STEPS ?= 1600
 # The demo stops training after DEMO_SECONDS whatever the step, so `make demo` stays within
 # 15 minutes (install included) on a 2-core machine.
 DEMO_SECONDS ?= 480
