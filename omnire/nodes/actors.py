@@ -197,3 +197,34 @@ def track_displacement(track: ActorTrack) -> float:
     if len(c) < 2:
         return 0.0
     return float(np.linalg.norm(c - c[0], axis=1).max() + np.linalg.norm(c - c.mean(0), axis=1).max())
+
+
+def init_box_gaussians(context, tracks: list[ActorTrack], voxel_size: float, max_points: int, random_points: int,
+                       max_scale: float, sh_degree: int, init_opacity: float) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """Box-local Gaussians for every instance: the LiDAR inside its box over the training
+    frames (accumulated in the box frame, voxel-downsampled, capped at ``max_points``) plus
+    ``random_points`` uniform in the box, coloured from the images, isotropic scales from
+    nearest neighbours (at most ``max_scale``). Returns raw parameters and the owning
+    instance of each Gaussian (N,)."""
+    from omnire.nodes.base import init_gaussian_params
+    from omnire.pointcloud import knn_scales, to_tensor, voxel_downsample
+
+    scene = context.scene
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
+    points, colours, owners = [], [], []
+    for i, track in enumerate(tracks):
+        local, _ = box_local_lidar(scene, track, scene.train_frames)
+        if len(local):
+            local = voxel_downsample(local, voxel_size)
+        if len(local) > max_points:
+            local = local[rng.choice(len(local), max_points, replace=False)]
+        local = np.concatenate([local, (rng.random((random_points, 3)) - 0.5) * track.size])
+        # merged voxels: colour from every frame the box is seen in
+        colours.append(colour_box_points(scene, context.images, track, local, np.full(len(local), -1)))
+        points.append(local)
+        owners.append(np.full(len(local), i))
+    scales = np.concatenate([np.minimum(knn_scales(p), max_scale) for p in points])
+    params = init_gaussian_params(to_tensor(np.concatenate(points)), to_tensor(np.concatenate(colours)),
+                                  to_tensor(scales), sh_degree, init_opacity, context.generator)
+    instance = torch.as_tensor(np.concatenate(owners), dtype=torch.long, device=context.device)
+    return {k: v.to(context.device) for k, v in params.items()}, instance

@@ -24,9 +24,8 @@ from torch import nn
 
 from omnire.gaussians import Gaussians
 from omnire.nn import DeformationMLP, positional_encoding
-from omnire.nodes.actors import ActorPoses, box_local_lidar, colour_box_points, rows_present, transform_instances
-from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, ParamGroup, init_gaussian_params
-from omnire.pointcloud import knn_scales, to_tensor, voxel_downsample
+from omnire.nodes.actors import ActorPoses, init_box_gaussians, rows_present, transform_instances
+from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, ParamGroup
 
 
 @dataclasses.dataclass
@@ -75,26 +74,14 @@ class DeformableNode(Node):
         self.config = config
         self.scene_radius = context.scene_radius
         scene = context.scene
-        rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
         self.track_ids = [t.track_id for t in tracks]
         self.poses = ActorPoses(tracks, scene.train_frames, config.refine_boxes, context.device)
-        points, colours, owners = [], [], []
-        for i, track in enumerate(tracks):
-            local, _ = box_local_lidar(scene, track, scene.train_frames)
-            if len(local):
-                local = voxel_downsample(local, config.voxel_size)
-            if len(local) > config.max_points_per_instance:
-                local = local[rng.choice(len(local), config.max_points_per_instance, replace=False)]
-            local = np.concatenate([local, (rng.random((config.random_points_per_instance, 3)) - 0.5) * track.size])
-            colours.append(colour_box_points(scene, context.images, track, local, np.full(len(local), -1)))
-            points.append(local)
-            owners.append(np.full(len(local), i))
-        scales = np.concatenate([np.minimum(knn_scales(p), 0.1) for p in points])
-        params = init_gaussian_params(to_tensor(np.concatenate(points)), to_tensor(np.concatenate(colours)),
-                                      to_tensor(scales), config.sh_degree, config.init_opacity, context.generator)
+        params, instance = init_box_gaussians(context, tracks, config.voxel_size, config.max_points_per_instance,
+                                              config.random_points_per_instance, 0.1, config.sh_degree,
+                                              config.init_opacity)
         for k, v in params.items():
-            self.gaussian_params[k] = nn.Parameter(v.to(context.device))
-        self.gaussian_buffers["instance"] = torch.as_tensor(np.concatenate(owners), dtype=torch.long, device=context.device)
+            self.gaussian_params[k] = nn.Parameter(v)
+        self.gaussian_buffers["instance"] = instance
         self.register_buffer("half_sizes", torch.as_tensor(np.stack([t.size for t in tracks]) / 2, dtype=torch.float32,
                                                            device=context.device))
         ts = np.asarray(scene.frame_timestamps, dtype=np.float64)

@@ -13,11 +13,11 @@ from typing import Optional
 
 import numpy as np
 import torch
+from torch import nn
 
 from omnire.gaussians import Gaussians
-from omnire.nodes.actors import ActorPoses, box_local_lidar, colour_box_points, rows_present, transform_instances
-from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, ParamGroup, init_gaussian_params
-from omnire.pointcloud import knn_scales, to_tensor, voxel_downsample
+from omnire.nodes.actors import ActorPoses, init_box_gaussians, rows_present, transform_instances
+from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, ParamGroup
 
 
 @dataclasses.dataclass
@@ -47,31 +47,14 @@ class RigidNode(Node):
         self.config = config
         self.scene_radius = context.scene_radius
         scene = context.scene
-        rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
         self.track_ids = [t.track_id for t in tracks]
         self.poses = ActorPoses(tracks, scene.train_frames, config.refine_boxes, context.device)
-        points, colours, owners = [], [], []
-        for i, track in enumerate(tracks):
-            local, src = box_local_lidar(scene, track, scene.train_frames)
-            if len(local):
-                local = voxel_downsample(local, config.voxel_size)
-                src = np.full(len(local), -1)  # merged voxels: colour from every frame the box is seen in
-            if len(local) > config.max_points_per_instance:
-                local = local[rng.choice(len(local), config.max_points_per_instance, replace=False)]
-                src = src[: len(local)]
-            rand = (rng.random((config.random_points_per_instance, 3)) - 0.5) * track.size
-            local = np.concatenate([local, rand])
-            src = np.concatenate([src, np.full(len(rand), -1)])
-            colours.append(colour_box_points(scene, context.images, track, local, src))
-            points.append(local)
-            owners.append(np.full(len(local), i))
-        pts = np.concatenate(points).astype(np.float32)
-        scales = np.concatenate([np.minimum(knn_scales(p), 0.2) for p in points])
-        params = init_gaussian_params(to_tensor(pts), to_tensor(np.concatenate(colours)), to_tensor(scales),
-                                      config.sh_degree, config.init_opacity, context.generator)
+        params, instance = init_box_gaussians(context, tracks, config.voxel_size, config.max_points_per_instance,
+                                              config.random_points_per_instance, 0.2, config.sh_degree,
+                                              config.init_opacity)
         for k, v in params.items():
-            self.gaussian_params[k] = torch.nn.Parameter(v.to(context.device))
-        self.gaussian_buffers["instance"] = torch.as_tensor(np.concatenate(owners), dtype=torch.long, device=context.device)
+            self.gaussian_params[k] = nn.Parameter(v)
+        self.gaussian_buffers["instance"] = instance
         self.register_buffer("half_sizes", torch.as_tensor(np.stack([t.size for t in tracks]) / 2, dtype=torch.float32,
                                                            device=context.device))
 
