@@ -24,8 +24,20 @@ class UnsafePickleError(pickle.UnpicklingError):
     """A pickle asked for a global that is not on the allowlist."""
 
 
-class _ChumpyArray:
+class StandIn:
+    """Base of objects that replace a refused class during unpickling; :func:`plain` swaps
+    each for the value of its :meth:`to_plain`. Readers with their own stand-ins (e.g.
+    joblib arrays) subclass it."""
+
+    def to_plain(self) -> Any:
+        raise NotImplementedError
+
+
+class _ChumpyArray(StandIn):
     """Stand-in for ``chumpy.ch.Ch``: keeps the ``x`` array from its pickled state."""
+
+    def to_plain(self) -> Any:
+        return self.x
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self.x: np.ndarray | None = None
@@ -37,8 +49,11 @@ class _ChumpyArray:
             self.x = np.asarray(state)
 
 
-class _SparseMatrix:
+class _SparseMatrix(StandIn):
     """Stand-in for scipy ``csc_matrix`` / ``csr_matrix``; :meth:`toarray` densifies."""
+
+    def to_plain(self) -> Any:
+        return self.dense()  # type: ignore[attr-defined]
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self.state: dict = {}
@@ -138,11 +153,9 @@ class RestrictedUnpickler(pickle.Unpickler):
 
 
 def plain(obj: Any) -> Any:
-    """Replace stand-ins (chumpy arrays, sparse matrices) by numpy arrays, recursively."""
-    if isinstance(obj, _ChumpyArray):
-        return obj.x
-    if isinstance(obj, _SparseMatrix):
-        return obj.dense()  # type: ignore[attr-defined]
+    """Replace stand-ins (chumpy arrays, sparse matrices, ...) by their values, recursively."""
+    if isinstance(obj, StandIn):
+        return obj.to_plain()
     if isinstance(obj, dict):
         return {k: plain(v) for k, v in obj.items()}
     if isinstance(obj, list):

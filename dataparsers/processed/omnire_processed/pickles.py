@@ -26,13 +26,13 @@ from typing import Any
 import numpy as np
 
 from omnire.io import safe_pickle
-from omnire.io.safe_pickle import RestrictedUnpickler, UnsafePickleError
+from omnire.io.safe_pickle import RestrictedUnpickler, StandIn, UnsafePickleError
 
 _JOBLIB_WRAPPER = ("joblib.numpy_pickle", "NumpyArrayWrapper")
 _TORCH_STORAGE = ("torch.storage", "_load_from_bytes")
 
 
-class _ArrayFromStream:
+class _ArrayFromStream(StandIn):
     """Stand-in for joblib's ``NumpyArrayWrapper``; ``stream`` is bound per unpickler."""
 
     stream: io.BytesIO
@@ -40,6 +40,9 @@ class _ArrayFromStream:
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self.array: np.ndarray | None = None
+
+    def to_plain(self) -> Any:
+        return self.array
 
     def __setstate__(self, state: dict) -> None:
         dtype = np.dtype(state["dtype"])
@@ -85,18 +88,6 @@ class SmplPickleUnpickler(RestrictedUnpickler):
         return super().find_class(module, name)
 
 
-def _plain(obj: Any) -> Any:
-    if isinstance(obj, _ArrayFromStream):
-        return obj.array
-    if isinstance(obj, dict):
-        return {k: _plain(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, tuple):
-        return tuple(_plain(v) for v in obj)
-    return obj
-
-
 def load_smpl_pickle(path: str | Path) -> Any:
     """Load a (joblib or plain) pickle through the restricted unpickler; arrays come back
     as numpy (torch tensors stay tensors; callers convert)."""
@@ -117,4 +108,4 @@ def load_smpl_pickle(path: str | Path) -> Any:
         raise
     except Exception as exc:
         raise pickle.UnpicklingError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc
-    return safe_pickle.plain(_plain(obj))
+    return safe_pickle.plain(obj)
