@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from omnire.camera import PinholeCamera
 from omnire.data.scene import SceneData, View
 from omnire.gaussians import Gaussians
 from omnire.nodes.base import Node, NodeContext
@@ -117,9 +118,10 @@ class SceneModel(nn.Module):
         K, c2w, W, H = camera_override or self.camera(view)
         frame = view.frame
         time = float(self.scene.frame_timestamps[frame]) if time_override is None else time_override
+        camera = PinholeCamera(K, c2w, W, H)
         parts, slices, start = [], [], 0
         for name, node in self.gaussian_nodes().items():
-            out = node.gaussians_at(frame, time, step)
+            out = node.gaussians_at(frame, time, step, camera=camera)
             if out is None:
                 continue
             g, rows = out

@@ -12,17 +12,20 @@ from scene_helpers import DEMO_SCENE
 @pytest.mark.skipif(not DEMO_SCENE.is_dir(), reason="demo scene not in this checkout")
 def test_bench_train_compares_methods(tmp_path):
     out = subprocess.run(
-        [sys.executable, "-m", "omnire.cli", "bench", "train", "--methods", "3dgs", "streetgs", "--data", str(DEMO_SCENE),
+        [sys.executable, "-m", "omnire.cli", "bench", "train", "--methods", "3dgs", "street-fixed-boxes=streetgs --method.nodes.rigid.no-refine-boxes", "--data", str(DEMO_SCENE),
          "--dataparser-args=--end-frame 12 --scale 0.25",
          "--method-args=--method.nodes.background.max-lidar-points 3000 --method.nodes.background.num-far-points 300",
          "--steps", "4", "--checkpoints", "2", "--output", str(tmp_path)],
         capture_output=True, text=True, timeout=900, env=dict(os.environ, COLUMNS="200"))
     assert out.returncode == 0, out.stdout + out.stderr
     results = json.loads((tmp_path / "results.json").read_text())["results"]
-    assert [r["method"] for r in results] == ["3dgs", "streetgs"]
+    assert [r["method"] for r in results] == ["3dgs", "street-fixed-boxes"]
+    assert "--method.nodes.rigid.no-refine-boxes" in results[1]["command"]
+    run = json.loads((tmp_path / "runs" / "street-fixed-boxes" / "run.json").read_text())
+    assert "no-refine-boxes" in json.dumps(run)
     for r in results:
         assert r["steps_done"] == 4 and len(r["curve"]) == 2  # one mid-way evaluation + the final one
         assert r["final"]["novel_view.views"] == 3 and r["final"]["peak_rss_mb"] > 0
     md = (tmp_path / "results.md").read_text()
-    assert "| streetgs |" in md and "copy nearest training frame" in md and "4 steps" in md
+    assert "| street-fixed-boxes |" in md and "street-fixed-boxes = `streetgs --method.nodes.rigid.no-refine-boxes`" in md and "copy nearest training frame" in md and "4 steps" in md
     assert (tmp_path / "psnr_vs_time.png").stat().st_size > 1000

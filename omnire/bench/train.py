@@ -34,7 +34,8 @@ class TrainBenchArgs:
     """Train several methods with one budget on one scene and compare them."""
 
     methods: tuple[str, ...] = ()
-    """Methods to compare (default: every registered method)."""
+    """Methods to compare (default: every registered method). An entry may be a variant
+    ``LABEL=METHOD [FLAGS]``, e.g. "omnire-no-smpl=omnire --method.disable smpl" (ablations)."""
     dataparser: str = "pandaset"
     """Dataparser name."""
     data: Path = Path("data/demo/pandaset_002")
@@ -57,19 +58,31 @@ class TrainBenchArgs:
     """Write psnr_vs_time.png (needs matplotlib)."""
 
 
-def _run_method(args: TrainBenchArgs, method: str) -> dict:
-    run_dir = args.output / "runs" / method
+def parse_entry(entry: str) -> tuple[str, str, list[str]]:
+    """A ``--methods`` entry -> (label, method, extra flags): "3dgs" or "LABEL=METHOD [FLAGS]"."""
+    label, sep, rest = entry.partition("=")
+    if not sep:
+        return entry, entry, []
+    tokens = shlex.split(rest)
+    if not label.strip() or not tokens or "/" in label:
+        raise ValueError(f"--methods entry {entry!r}: expected METHOD or LABEL=METHOD [FLAGS] (label without '/')")
+    return label.strip(), tokens[0], tokens[1:]
+
+
+def _run_method(args: TrainBenchArgs, entry: str) -> dict:
+    label, method, flags = parse_entry(entry)
+    run_dir = args.output / "runs" / label
     eval_every = max(1, args.steps // max(1, args.checkpoints))
     cmd = [sys.executable, "-m", "omnire.cli", "train", method, args.dataparser, "--data", str(args.data),
-           *shlex.split(args.dataparser_args), *shlex.split(args.method_args),
+           *shlex.split(args.dataparser_args), *shlex.split(args.method_args), *flags,
            "--trainer.max-steps", str(args.steps), "--trainer.max-seconds", str(args.seconds),
            "--trainer.eval-every", str(eval_every), "--trainer.checkpoint-every", str(args.steps),
            "--trainer.threads", str(args.threads), "--trainer.output-dir", str(run_dir.parent),
-           "--trainer.run-name", method, "--trainer.no-progress"]
+           "--trainer.run-name", label, "--trainer.no-progress"]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, COLUMNS="200"))
     elapsed = time.perf_counter() - t0
-    result = {"method": method, "command": cmd[2:], "exit_code": proc.returncode, "elapsed_s": elapsed}
+    result = {"method": label, "base_method": method, "flags": flags, "command": cmd[2:], "exit_code": proc.returncode, "elapsed_s": elapsed}
     if proc.returncode != 0:
         result["error"] = (proc.stderr or proc.stdout)[-2000:]
         return result
@@ -104,13 +117,13 @@ def markdown_table(results: list[dict], args: TrainBenchArgs) -> str:
         "",
         "| Method | Recon PSNR | Recon SSIM | Recon human PSNR | Recon vehicle PSNR | NVS PSNR | NVS SSIM | "
         "NVS human PSNR | NVS vehicle PSNR | Depth RMSE (m) | Chamfer (m) | Gaussians | train it/s | render fps | "
-        "peak MB | train s |",
-        "|" + "---|" * 16,
+        "peak MB | train s | steps |",
+        "|" + "---|" * 17,
     ]
     copy = None
     for r in results:
         if "final" not in r:
-            lines.append(f"| {r['method']} | failed (exit {r['exit_code']}) |" + " |" * 14)
+            lines.append(f"| {r['method']} | failed (exit {r['exit_code']}) |" + " |" * 15)
             continue
         f = r["final"]
         copy = copy or f
@@ -121,12 +134,16 @@ def markdown_table(results: list[dict], args: TrainBenchArgs) -> str:
             _fmt(f.get("novel_view.human_psnr")), _fmt(f.get("novel_view.vehicle_psnr")),
             _fmt(f.get("novel_view.depth_rmse")), _fmt(f.get("novel_view.depth_chamfer"), 3),
             str(f.get("num_gaussians", "-")), _fmt(r.get("train_its")), _fmt(f.get("novel_view.render_fps")),
-            _fmt(f.get("peak_rss_mb"), 0), _fmt(f.get("train_seconds"), 0)]) + " |")
+            _fmt(f.get("peak_rss_mb"), 0), _fmt(f.get("train_seconds"), 0), str(r.get("steps_done", "-"))]) + " |")
     if copy:
         lines.append("| copy nearest training frame | - | - | - | - | " + " | ".join([
             _fmt(copy.get("novel_view.copy_full_psnr")), _fmt(copy.get("novel_view.copy_full_ssim"), 3),
             _fmt(copy.get("novel_view.copy_human_psnr")), _fmt(copy.get("novel_view.copy_vehicle_psnr"))])
-            + " | - | - | - | - | - | - | - |")
+            + " | - | - | - | - | - | - | - | - |")
+    variants = [r for r in results if r.get("flags") or r.get("base_method", r["method"]) != r["method"]]
+    if variants:
+        lines += ["", "Variants: " + "; ".join(f"{r['method']} = `{r['base_method']} {shlex.join(r['flags'])}`"
+                                           for r in variants) + "."]
     lines += ["", "Depth metrics are on held-out frames. NVS = novel view synthesis on the held-out frames "
               "(every 10th frame, all cameras)."]
     return "\n".join(lines) + "\n"
@@ -163,6 +180,15 @@ def main(argv: list[str]) -> int:
 
     args = tyro.cli(TrainBenchArgs, args=argv, prog="omnire bench train")
     methods = list(args.methods) or load_plugins().methods.names()
+    try:
+        labels = [parse_entry(m)[0] for m in methods]
+    except ValueError as e:
+        console = Console()
+        console.print(f"[red]error:[/] {e}")
+        return 2
+    if len(set(labels)) != len(labels):
+        Console().print(f"[red]error:[/] --methods: labels must be unique, got {labels}")
+        return 2
     console = Console()
     args.output.mkdir(parents=True, exist_ok=True)
     results = []

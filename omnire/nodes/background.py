@@ -12,6 +12,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from omnire.camera import PinholeCamera
 from omnire.gaussians import Gaussians
 from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, init_gaussian_params
 from omnire.pointcloud import colour_from_images, far_shell, knn_scales, points_in_box, to_tensor, voxel_downsample
@@ -85,7 +86,8 @@ class BackgroundNode(Node):
         for k, v in init_background_params(config, context).items():
             self.gaussian_params[k] = torch.nn.Parameter(v)
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None):
+    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
+                     camera: Optional[PinholeCamera] = None):
         rows = None  # all rows: the background is present at every frame
         return Gaussians.from_params(self.gaussian_params), rows
 

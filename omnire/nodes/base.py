@@ -8,10 +8,13 @@ Contract:
   per-Gaussian extras): every per-Gaussian tensor the densification strategy must clone,
   split and prune. ``gaussian_buffers``: per-Gaussian non-trainable tensors (e.g. owning
   instance), densified alongside.
-- ``gaussians_at(frame, time, step=None)`` returns the world-space Gaussians of the
-  instances present at that frame and the rows of ``gaussian_params`` they came from, or
-  None (absent nodes cost nothing). ``step`` is the training step (None outside training:
-  render the fully trained model); nodes use it for schedules such as warm-ups.
+- ``gaussians_at(frame, time, step=None, camera=None)`` returns the world-space Gaussians
+  of the instances present at that frame and the rows of ``gaussian_params`` they came
+  from, or None (absent nodes cost nothing). ``step`` is the training step (None outside
+  training: render the fully trained model); nodes use it for schedules such as warm-ups.
+  ``camera`` (:class:`omnire.camera.PinholeCamera`) is the camera being rendered: nodes
+  with costly per-Gaussian work may skip Gaussians it cannot see (the rasterizer culls
+  anyway); None means "no camera": return everything.
 - ``param_groups()`` lists learning-rate groups, per-Gaussian ones by key.
 """
 from __future__ import annotations
@@ -22,6 +25,7 @@ from typing import Any, Optional
 import torch
 from torch import nn
 
+from omnire.camera import PinholeCamera
 from omnire.config import InstantiateConfig
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 
@@ -113,7 +117,8 @@ class Node(nn.Module):
     def num_gaussians(self) -> int:
         return int(self.gaussian_params["means"].shape[0]) if "means" in self.gaussian_params else 0
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None) -> Optional[tuple[Gaussians, Optional[torch.Tensor]]]:
+    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
+                     camera: Optional[PinholeCamera] = None) -> Optional[tuple[Gaussians, Optional[torch.Tensor]]]:
         raise NotImplementedError
 
     def param_groups(self) -> list[ParamGroup]:

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from omnire.camera import PinholeCamera
 from omnire.gaussians import Gaussians
 from omnire.nn import DeformationMLP, positional_encoding
 from omnire.nodes.actors import ActorPoses, init_box_gaussians, rows_present, transform_instances
@@ -101,7 +102,8 @@ class DeformableNode(Node):
                            self.embeddings[instance]], dim=-1)
         return self.mlp(feats)
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None):
+    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
+                     camera: Optional[PinholeCamera] = None):
         self._last_offsets = None  # the regulariser only sees what this call renders
         ids, R, t = self.poses.at(frame)
         if len(ids) == 0:

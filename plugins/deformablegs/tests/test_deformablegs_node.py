@@ -131,3 +131,26 @@ def test_short_training_lowers_loss(scene, tmp_path):
     assert all(torch.isfinite(torch.tensor(r["loss"])) for r in logs if "loss" in r)
     # the field was trained after the warm-up
     assert trainer.model.nodes["deformable_field"].mlp.out.weight.abs().sum() > 0
+
+
+def test_frustum_culling_deforms_only_what_the_camera_sees_and_renders_the_same(scene, tmp_path):
+    method = MethodConfig(nodes={"deformable_field": small_config(warmup_steps=0)}, rasterizer="auto")
+    tc = TrainerConfig(max_steps=1, output_dir=tmp_path, run_name="cull", progress=False, eval_train_views=0)
+    trainer = Trainer(TrainConfig("deformablegs", "test", method, None, tc), load_plugins(), argv=[], scene=scene)
+    node = trainer.model.nodes["deformable_field"]
+    with torch.no_grad():
+        node.mlp.out.weight.normal_(0, 0.01)
+        # Far behind every camera: never deformed, never rendered.
+        node.gaussian_params["means"][:50] = trainer.model.camera(trainer.train_views[0])[1][:3, 3] - 1e4
+    view = trainer.train_views[0]
+    K, c2w, W, H = trainer.model.camera(view)
+    from omnire.camera import PinholeCamera
+    g, rows = node.gaussians_at(view.frame, 0.1, step=None, camera=PinholeCamera(K, c2w, W, H))
+    assert rows is not None and 0 < len(rows) < node.num_gaussians and not bool((rows < 50).any())
+    full, _ = node.gaussians_at(view.frame, 0.1, step=None)  # no camera: every Gaussian
+    torch.testing.assert_close(g.means, full.means[rows])
+    with torch.no_grad():
+        culled = trainer.model.render(view, 0).rgb
+        node.config.cull_margin = -1.0  # off: the paper's behaviour
+        uncull = trainer.model.render(view, 0).rgb
+    torch.testing.assert_close(culled, uncull, atol=1e-4, rtol=0)

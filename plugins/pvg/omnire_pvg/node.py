@@ -46,6 +46,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from omnire.camera import PinholeCamera
 from omnire.gaussians import Gaussians
 from omnire.nodes.background import BackgroundConfig, init_background_params, lidar_points_for_init
 from omnire.nodes.base import Node, NodeContext, init_gaussian_params
@@ -185,7 +186,8 @@ class PVGNode(Node):
         return pvg_state(p["means"], p["opacities"], p["life_peak"], p["life_span"], p["velocity"], t,
                          self.config.period)
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None):
+    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
+                     camera: Optional[PinholeCamera] = None):
         c = self.config
         t = self.pvg_time(time)
         if step is not None and c.smooth_prob > 0 and float(torch.rand(())) < c.smooth_prob:

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from omnire.camera import PinholeCamera
 from omnire.gaussians import Gaussians
 from omnire.nodes.actors import ActorPoses, init_box_gaussians, rows_present, transform_instances
 from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, ParamGroup
@@ -58,7 +59,8 @@ class RigidNode(Node):
         self.register_buffer("half_sizes", torch.as_tensor(np.stack([t.size for t in tracks]) / 2, dtype=torch.float32,
                                                            device=context.device))
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None):
+    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
+                     camera: Optional[PinholeCamera] = None):
         ids, R, t = self.poses.at(frame)
         if len(ids) == 0:
             return None  # absent actors cost nothing

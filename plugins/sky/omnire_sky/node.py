@@ -14,6 +14,7 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
+from omnire.camera import PinholeCamera
 from omnire.nodes.base import Node, NodeConfig, NodeContext, ParamGroup
 
 
@@ -59,7 +60,8 @@ class SkyNode(Node):
         out = F.grid_sample(self.env, grid, mode="bilinear", padding_mode="border", align_corners=False)
         return out[0].permute(1, 2, 0).clamp(0, 1)
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None):
+    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
+                     camera: Optional[PinholeCamera] = None):
         return None
 
     def param_groups(self) -> list[ParamGroup]:

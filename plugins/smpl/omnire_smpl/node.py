@@ -41,6 +41,7 @@ import torch
 from torch import nn
 
 from omnire.body.template import BodyTemplate, load_template
+from omnire.camera import PinholeCamera
 from omnire.data.scene import HumanPoseSequence
 from omnire.gaussians import Gaussians
 from omnire.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
@@ -261,7 +262,8 @@ class SMPLNode(Node):
         return R_p.index_put((torch.nonzero(interp).flatten(),), mixed)
 
     # ------------------------------------------------------------------ Node API
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None):
+    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
+                     camera: Optional[PinholeCamera] = None):
         ids, R_box, t_box = self.poses.at(frame)
         if len(ids) == 0:
             return None  # absent people cost nothing
