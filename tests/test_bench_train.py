@@ -29,3 +29,28 @@ def test_bench_train_compares_methods(tmp_path):
     md = (tmp_path / "results.md").read_text()
     assert "| street-fixed-boxes |" in md and "street-fixed-boxes = `streetgs --method.nodes.rigid.no-refine-boxes`" in md and "copy nearest training frame" in md and "4 steps" in md
     assert (tmp_path / "psnr_vs_time.png").stat().st_size > 1000
+    # --report-only rebuilds the table and plot from results.json without training.
+    (tmp_path / "results.md").unlink()
+    (tmp_path / "psnr_vs_time.png").unlink()
+    again = subprocess.run([sys.executable, "-m", "omnire.cli", "bench", "train", "--report-only", "--output", str(tmp_path)],
+                           capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert (tmp_path / "results.md").read_text() == md and (tmp_path / "psnr_vs_time.png").stat().st_size > 1000
+
+
+def test_same_step_table_when_a_time_budget_stops_methods_early():
+    from omnire.bench.train import _same_step_table, common_step
+
+    def result(name, steps):
+        curve = [{"step": s, "train_seconds": s / 2, "novel_view.full_psnr": 20 + s / 1000, "num_gaussians": 5}
+                 for s in steps]
+        return {"method": name, "final": {}, "steps_done": steps[-1], "curve": curve}
+
+    results = [result("fast", [500, 1000, 1500, 2000]), result("slow", [500, 1000, 1500, 1730]),
+               {"method": "broken", "exit_code": 1}]
+    assert common_step(results) == 1500
+    lines = _same_step_table(results)
+    assert "every method at step 1500" in lines[1]
+    assert lines[-1] == "| slow | - | - | - | 21.50 | - | - | - | - | 5 | 750 |"
+    # Everyone finished the same steps: no second table.
+    assert _same_step_table([result("a", [500, 1000]), result("b", [500, 1000])]) == []

@@ -56,6 +56,8 @@ class TrainBenchArgs:
     """Output directory."""
     plot: bool = True
     """Write psnr_vs_time.png (needs matplotlib)."""
+    report_only: bool = False
+    """Train nothing: rewrite results.md and the plot from the results.json in --output."""
 
 
 def parse_entry(entry: str) -> tuple[str, str, list[str]]:
@@ -140,6 +142,7 @@ def markdown_table(results: list[dict], args: TrainBenchArgs) -> str:
             _fmt(copy.get("novel_view.copy_full_psnr")), _fmt(copy.get("novel_view.copy_full_ssim"), 3),
             _fmt(copy.get("novel_view.copy_human_psnr")), _fmt(copy.get("novel_view.copy_vehicle_psnr"))])
             + " | - | - | - | - | - | - | - | - |")
+    lines += _same_step_table(results)
     variants = [r for r in results if r.get("flags") or r.get("base_method", r["method"]) != r["method"]]
     if variants:
         lines += ["", "Variants: " + "; ".join(f"{r['method']} = `{r['base_method']} {shlex.join(r['flags'])}`"
@@ -149,27 +152,63 @@ def markdown_table(results: list[dict], args: TrainBenchArgs) -> str:
     return "\n".join(lines) + "\n"
 
 
+def common_step(results: list[dict]) -> Optional[int]:
+    """The largest evaluated step every successful method reached (None if there is none)."""
+    steps = [{c["step"] for c in r.get("curve", [])} for r in results if "final" in r]
+    shared = set.intersection(*steps) if steps else set()
+    return max(shared) if shared else None
+
+
+def _same_step_table(results: list[dict]) -> list[str]:
+    """When a wall-clock budget stopped some methods early, the same metrics for every method
+    at the last evaluated step all of them reached: an equal-iteration comparison (all
+    methods share the schedule of the step budget, so step S is the same point of it)."""
+    done = [r for r in results if "final" in r]
+    step = common_step(done)
+    if step is None or all(r.get("steps_done") == step for r in done):
+        return []
+    lines = ["", f"Same iteration budget: every method at step {step} (the last evaluation all of them reached).", "",
+             "| Method | Recon PSNR | Recon human PSNR | Recon vehicle PSNR | NVS PSNR | NVS SSIM | NVS human PSNR | "
+             "NVS vehicle PSNR | Depth RMSE (m) | Gaussians | train s |",
+             "|" + "---|" * 11]
+    for r in done:
+        c = next(c for c in r["curve"] if c["step"] == step)
+        lines.append("| " + " | ".join([
+            r["method"], _fmt(c.get("reconstruction.full_psnr")), _fmt(c.get("reconstruction.human_psnr")),
+            _fmt(c.get("reconstruction.vehicle_psnr")), _fmt(c.get("novel_view.full_psnr")),
+            _fmt(c.get("novel_view.full_ssim"), 3), _fmt(c.get("novel_view.human_psnr")),
+            _fmt(c.get("novel_view.vehicle_psnr")), _fmt(c.get("novel_view.depth_rmse")),
+            str(c.get("num_gaussians", "-")), _fmt(c.get("train_seconds"), 0)]) + " |")
+    return lines
+
+
 def plot(results: list[dict], path: Path) -> None:
+    """Novel-view PSNR against training time per method: full image, human and vehicle regions."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=120)
-    for r in results:
-        curve = [c for c in r.get("curve", []) if c.get("novel_view.full_psnr") is not None]
-        if curve:
-            ax.plot([c["train_seconds"] for c in curve], [c["novel_view.full_psnr"] for c in curve], "o-", label=r["method"])
-    copy = next((r["final"].get("novel_view.copy_full_psnr") for r in results if "final" in r), None)
-    if copy is not None:
-        ax.axhline(copy, color="grey", ls="--", label="copy nearest frame")
-    ax.set_xlabel("training time (s, evaluation excluded)")
-    ax.set_ylabel("novel-view PSNR (dB)")
-    ax.grid(alpha=0.3)
-    ax.legend()
+    panels = [("full", "full image"), ("human", "human regions"), ("vehicle", "vehicle regions")]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.4), dpi=110)
+    for ax, (region, title) in zip(axes, panels):
+        key = f"novel_view.{region}_psnr"
+        for r in results:
+            curve = [c for c in r.get("curve", []) if c.get(key) is not None and c[key] == c[key]]
+            if curve:
+                ax.plot([c["train_seconds"] for c in curve], [c[key] for c in curve], "o-", label=r["method"])
+        copy = next((r["final"].get(f"novel_view.copy_{region}_psnr") for r in results if "final" in r), None)
+        if copy is not None and copy == copy:
+            ax.axhline(copy, color="grey", ls="--", label="copy nearest frame")
+        ax.set_title(f"novel views, {title}")
+        ax.set_xlabel("training time (s, evaluation excluded)")
+        ax.set_ylabel("PSNR (dB)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
     fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")
     fig.savefig(tmp)
+    plt.close(fig)
     os.replace(tmp, path)
 
 
@@ -179,17 +218,25 @@ def main(argv: list[str]) -> int:
     from omnire.plugins import load_plugins
 
     args = tyro.cli(TrainBenchArgs, args=argv, prog="omnire bench train")
+    console = Console()
+    if args.report_only:
+        path = args.output / "results.json"
+        if not path.is_file():
+            console.print(f"[red]error:[/] {path}: no results.json to report from (run without --report-only first)")
+            return 2
+        saved = json.loads(path.read_text())
+        kept = {k: type(getattr(args, k))(v) for k, v in saved["args"].items()
+                if k in ("data", "dataparser", "dataparser_args", "steps", "seconds")}
+        return _report(dataclasses.replace(args, **kept), saved["results"], console)
     methods = list(args.methods) or load_plugins().methods.names()
     try:
         labels = [parse_entry(m)[0] for m in methods]
     except ValueError as e:
-        console = Console()
         console.print(f"[red]error:[/] {e}")
         return 2
     if len(set(labels)) != len(labels):
-        Console().print(f"[red]error:[/] --methods: labels must be unique, got {labels}")
+        console.print(f"[red]error:[/] --methods: labels must be unique, got {labels}")
         return 2
-    console = Console()
     args.output.mkdir(parents=True, exist_ok=True)
     results = []
     for m in methods:
@@ -200,6 +247,10 @@ def main(argv: list[str]) -> int:
         console.print(f"  {m}: {status} in {r['elapsed_s']:.0f} s")
         atomic_write_text(args.output / "results.json", json.dumps(
             {"args": json.loads(json.dumps(dataclasses.asdict(args), default=str)), "results": results}, indent=2))
+    return _report(args, results, console)
+
+
+def _report(args: TrainBenchArgs, results: list[dict], console) -> int:
     table = markdown_table(results, args)
     atomic_write_text(args.output / "results.md", table)
     if args.plot:
