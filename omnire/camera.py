@@ -27,6 +27,13 @@ class PinholeCamera:
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"PinholeCamera: image size {self.width}x{self.height} must be positive")
 
+    def padded(self, pixels: int) -> "PinholeCamera":
+        """The same camera with ``pixels`` more image on every side."""
+        K = self.K.clone()
+        K[0, 2] += pixels
+        K[1, 2] += pixels
+        return PinholeCamera(K, self.cam_to_world, self.width + 2 * pixels, self.height + 2 * pixels)
+
 
 def in_frustum(points: torch.Tensor, camera: PinholeCamera, margin: "float | torch.Tensor") -> torch.Tensor:
     """(N,) bool: world ``points`` (N,3) within ``margin`` metres (a float, or (N,) per

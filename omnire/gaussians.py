@@ -120,6 +120,10 @@ class Gaussians:
             q = rotmat_to_quat(rotation)
         return dataclasses.replace(self, means=means, quats=quat_multiply(q, self.quats))
 
+    def subset(self, rows: torch.Tensor) -> "Gaussians":
+        """The Gaussians at ``rows`` (M,) (autograd flows back to the full set)."""
+        return Gaussians(*(getattr(self, f.name)[rows] for f in dataclasses.fields(self)))
+
     @staticmethod
     def cat(parts: list["Gaussians"]) -> "Gaussians":
         """Concatenate; SH bands are zero-padded to the largest degree present."""

@@ -36,5 +36,8 @@ class MethodConfig:
     """Steps between switching on SH bands."""
     background_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Colour under the Gaussians when the method has no environment (sky) node."""
+    cull_to_view: bool = True
+    """Drop Gaussians whose 3-sigma extent lies outside the camera frustum before colour
+    evaluation and rasterization (same image, less work; their rows get no optimiser step)."""
     rasterizer: str = "auto"
     """Rasterizer backend name, or auto (gsplat on CUDA, native on CPU, else torch)."""

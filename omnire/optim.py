@@ -4,11 +4,11 @@ One Adam per node, one parameter group per :class:`~omnire.nodes.base.ParamGroup
 per-Gaussian parameters carry their ``key`` so the densification strategy can resize the
 parameter and its Adam moments together.
 
-Selective Adam (as gsplat's ``SelectiveAdam``): when a node rendered only some of its rows
-this step (actor nodes render only the instances present at the frame), its per-Gaussian
-parameters are updated on those rows only: moments and parameters of the other rows stay
-as they are, so a step costs nothing for actors absent from the frame (dense Adam would
-keep moving them on stale momentum, at O(all Gaussians) per step).
+Adam runs fused (one pass over parameter, gradient and moments; torch >= 2.4 on CPU and
+CUDA) where the build supports it: on 300k Gaussians it steps in 12 ms instead of 46 ms
+(foreach). A row-selective Adam (only the rows rendered this step, as gsplat's
+SelectiveAdam) was measured and dropped on the CPU: gathering and scattering the rows cost
+44-106 ms for 30-90% of 300k rows, more than the fused dense step over all of them.
 """
 from __future__ import annotations
 
@@ -49,27 +49,20 @@ class Optimizers:
         if not groups:
             return
         self.groups[name] = groups
-        self.optimizers[name] = torch.optim.Adam(
-            [{"params": g.params, "lr": g.lr, "name": g.name} for g in groups], eps=1e-15
-        )
+        param_groups = [{"params": g.params, "lr": g.lr, "name": g.name} for g in groups]
+        try:
+            self.optimizers[name] = torch.optim.Adam(param_groups, eps=1e-15, fused=True)
+        except (RuntimeError, TypeError, ValueError):  # no fused kernel for this device / build
+            self.optimizers[name] = torch.optim.Adam(param_groups, eps=1e-15)
 
     def zero_grad(self) -> None:
         for opt in self.optimizers.values():
             opt.zero_grad(set_to_none=True)
 
-    def step(self, step: int, rendered_rows: Optional[dict[str, Optional[torch.Tensor]]] = None) -> None:
-        """Apply the schedules and step every optimiser. ``rendered_rows`` maps node name ->
-        the rows of its per-Gaussian parameters rendered this step (None: all rows); those
-        nodes' per-Gaussian parameters get a selective Adam step on these rows only."""
+    def step(self, step: int) -> None:
         for name, opt in self.optimizers.items():
-            rows = (rendered_rows or {}).get(name)
             for spec, group in zip(self.groups[name], opt.param_groups):
                 group["lr"] = exponential_lr(spec.lr, spec.lr_final, step, self.max_steps, spec.warmup_steps)
-                if rows is not None and spec.key is not None:
-                    for p in group["params"]:
-                        if p.grad is not None:
-                            selective_adam_step(p, rows, opt.state[p], group)
-                            p.grad = None  # done: the dense step below skips it
             opt.step()
 
     def replace_gaussian_rows(
@@ -108,34 +101,6 @@ class Optimizers:
     def load_state_dict(self, state: dict) -> None:
         for name, opt in self.optimizers.items():
             opt.load_state_dict(state[name])
-
-
-@torch.no_grad()
-def selective_adam_step(param: torch.Tensor, rows: torch.Tensor, state: dict, group: dict) -> None:
-    """One Adam step (torch.optim.Adam's arithmetic, no weight decay or amsgrad) on
-    ``param[rows]`` only. ``param`` (N, ...) with ``.grad``; ``rows`` (M,) unique row indices;
-    ``state`` the optimiser's state of ``param`` (``step``, ``exp_avg``, ``exp_avg_sq``,
-    created if missing, the same layout as torch's Adam so checkpoints and densification treat
-    both alike); ``group`` its param group (``lr``, ``betas``, ``eps``). The step counter is
-    per parameter (bias correction as if every step had touched the row, as gsplat)."""
-    if group.get("weight_decay", 0) or group.get("amsgrad", False) or group.get("maximize", False):
-        raise ValueError("selective_adam_step: weight decay, amsgrad and maximize are not supported")
-    if not state:
-        state["step"] = torch.tensor(0.0)
-        state["exp_avg"] = torch.zeros_like(param, memory_format=torch.preserve_format)
-        state["exp_avg_sq"] = torch.zeros_like(param, memory_format=torch.preserve_format)
-    beta1, beta2 = group["betas"]
-    lr, eps = float(group["lr"]), float(group["eps"])
-    state["step"] += 1
-    t = float(state["step"])
-    g = param.grad[rows]
-    m = state["exp_avg"][rows].lerp_(g, 1 - beta1)
-    v = state["exp_avg_sq"][rows].mul_(beta2).addcmul_(g, g, value=1 - beta2)
-    state["exp_avg"][rows] = m
-    state["exp_avg_sq"][rows] = v
-    bias1, bias2 = 1 - beta1 ** t, 1 - beta2 ** t
-    denom = (v.sqrt() / math.sqrt(bias2)).add_(eps)
-    param[rows] = param[rows].addcdiv(m, denom, value=-lr / bias1)
 
 
 def count_parameters(modules: dict[str, nn.Module]) -> int:

@@ -186,7 +186,7 @@ class Trainer:
         cam = self.scene.cameras[view.camera]
         self.strategy.accumulate(self.model.gaussian_nodes(), result.slices, result.absgrad2d, result.radii,
                                  cam.width, cam.height)
-        self.optimizers.step(self.step, {s.node: s.rows for s in result.slices})
+        self.optimizers.step(self.step)
         self.optimizers.zero_grad()
         self.step += 1
         self.strategy.step(self.model.gaussian_nodes(), self.optimizers, self.step)
