@@ -123,3 +123,28 @@ def test_no_growth_or_reset_in_the_second_half_of_a_short_run():
     assert torch.equal(node.gaussian_params["opacities"], before)
     strat.step({"toy": node}, opt, 40)
     assert torch.sigmoid(node.gaussian_params["opacities"]).max() <= 0.0100001
+
+
+def test_optimizer_is_fused_and_steps_like_plain_adam():
+    class OneParam(Node):
+        def __init__(self):
+            super().__init__()
+            self.gaussian_params["means"] = torch.nn.Parameter(torch.zeros(20, 3))
+
+        def gaussian_lrs(self):
+            return {"means": (0.01, None)}
+
+    node = OneParam()
+    opts = Optimizers({"n": node}, max_steps=10)
+    if tuple(int(x) for x in torch.__version__.split(".")[:2]) >= (2, 4):  # CPU fused kernel since 2.4
+        assert opts.optimizers["n"].defaults.get("fused") is True
+    ref = torch.nn.Parameter(torch.zeros(20, 3))
+    plain = torch.optim.Adam([ref], lr=0.01, eps=1e-15, foreach=False)
+    g = torch.Generator().manual_seed(0)
+    for step in range(5):
+        grad = torch.randn(20, 3, generator=g)
+        node.gaussian_params["means"].grad = grad.clone()
+        ref.grad = grad.clone()
+        opts.step(step)
+        plain.step()
+    torch.testing.assert_close(node.gaussian_params["means"].detach(), ref.detach(), rtol=1e-5, atol=1e-6)
