@@ -98,7 +98,7 @@ def evaluate_model(trainer) -> dict:
     return result
 
 
-def format_table(result: dict, title: str = "evaluation") -> "rich.table.Table":
+def format_table(result: dict, title: str = "evaluation"):
     """One row per split, columns in the paper's layout: full / human / vehicle PSNR and
     SSIM, depth RMSE and Chamfer; held-out rows add the copy-nearest-frame baseline."""
     from rich.table import Table

@@ -156,4 +156,4 @@ def select_rasterizer(
             return spec.factory(**kwargs)
         reasons.append(f"{spec.name}: {reason}")
     raise ValueError(f"no rasterizer available on {device}: " + "; ".join(reasons) if reasons else
-                     f"no rasterizer registered (install omnire-rasterizer-torch)")
+                     "no rasterizer registered (install omnire-rasterizer-torch)")

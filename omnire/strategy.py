@@ -10,6 +10,7 @@ rasterizer's ``absgrad2d``), scaled to normalised device units (x W/2, x H/2 as 
   (samples from the Gaussian, scales / 1.6);
 - prune: opacity < ``prune_opacity``, too large (> ``prune_scale`` x scene radius, after the
   first opacity reset), non-finite, or flagged by the node (``Node.extra_prune_mask``);
+- nodes that rely on a row order (``Node.row_order``) get their rows permuted back;
 - every ``reset_every`` steps opacities are clamped to 2 x ``prune_opacity``, only while
   growth is still on (a reset needs densification steps after it to recover).
 
@@ -114,6 +115,9 @@ class AbsGradStrategy:
                 if step < self.refine_stop:
                     report["grown"] += self._grow(name, node, optimizers)
                 report["pruned"] += self._prune(name, node, optimizers, step)
+                order = node.row_order()  # e.g. actor nodes keep each instance's rows contiguous
+                if order is not None:
+                    optimizers.replace_gaussian_rows(name, node, lambda k, t: t[order], lambda k, s: s[order])
                 self.state.pop(name, None)
         if c.reset_every > 0 and 0 < step < self.refine_stop and step % c.reset_every == 0:
             for name, node in nodes.items():

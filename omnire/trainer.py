@@ -11,12 +11,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import time
 from pathlib import Path
 from typing import Any, Optional
 
-import numpy as np
 import torch
 
 from omnire.data.images import ImageCache
@@ -26,7 +24,6 @@ from omnire.lidar import LidarDepthTargets
 from omnire.losses import LossContext
 from omnire.masks import DynamicMasks, SkyMasks
 from omnire.method import MethodConfig
-from omnire.metrics import psnr, ssim
 from omnire.model import SceneModel
 from omnire.optim import Optimizers
 from omnire.rasterization import select_rasterizer
@@ -211,7 +208,7 @@ class Trainer:
         with progress, open(metrics_path, "a") as log:
             task = progress.add_task("train", total=tc.max_steps, completed=self.step, loss=0.0, psnr=0.0, its=0.0,
                                      ng=self.model.num_gaussians())
-            window_t, window_n = time.perf_counter(), 0
+            window_n = 0
             window_seconds = 0.0
             while self.step < tc.max_steps and not (tc.max_seconds and train_seconds >= tc.max_seconds):
                 t0 = time.perf_counter()

@@ -1,6 +1,5 @@
 """Trainer end to end on a tiny scene with the reference rasterizer: loss goes down,
 densification runs, checkpoints resume exactly, non-finite values are refused."""
-import dataclasses
 import json
 
 import pytest

@@ -4,8 +4,11 @@ instance has per-frame box poses, optionally refined.
 
 Held-out frames never receive gradients, so their pose refinement is interpolated from the
 nearest training frames of the same instance (linear in the small axis-angle / translation
-deltas), and absent instances cost nothing: only the rows of instances present at the
-rendered frame are gathered and transformed.
+deltas), and absent instances cost nothing: the rows of each instance are kept contiguous
+(``instance`` non-decreasing; restored after densification through ``row_order``), so the
+rows of the instances present at a frame are found from per-instance offsets without
+scanning every Gaussian, gathered with a row-sparse gradient and stepped row-sparse by the
+optimiser (:mod:`omnire.rowsparse`).
 """
 from __future__ import annotations
 
@@ -18,10 +21,11 @@ import torch
 from torch import nn
 
 from omnire.data.scene import ActorTrack, SceneData
-from omnire.gaussians import Gaussians
+from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 from omnire.geometry import quat_multiply, rotmat_to_quat
-from omnire.nodes.base import ParamGroup
+from omnire.nodes.base import Node, ParamGroup
 from omnire.pointcloud import points_in_box
+from omnire.rowsparse import gather_rows
 
 
 def axis_angle_to_rotmat(v: torch.Tensor) -> torch.Tensor:
@@ -123,11 +127,59 @@ def transform_instances(g: Gaussians, instance: torch.Tensor, ids: torch.Tensor,
     return dataclasses.replace(g, means=means, quats=quat_multiply(q[slot], g.quats))
 
 
-def rows_present(instance: torch.Tensor, present_ids: torch.Tensor, num_instances: int) -> torch.Tensor:
-    """Rows (M,) whose instance is in ``present_ids``."""
-    mask = torch.zeros(num_instances, dtype=torch.bool, device=instance.device)
-    mask[present_ids] = True
-    return torch.nonzero(mask[instance]).flatten()
+def instance_offsets(instance: torch.Tensor, num_instances: int) -> torch.Tensor:
+    """(I+1,) offsets of the contiguous rows of each instance in non-decreasing ``instance``
+    (N,): instance i owns rows offsets[i]:offsets[i+1]."""
+    if len(instance) > 1 and bool((instance[1:] < instance[:-1]).any()):
+        raise ValueError("instance rows are not grouped (instance buffer must be non-decreasing)")
+    return torch.searchsorted(instance, torch.arange(num_instances + 1, device=instance.device))
+
+
+def segment_rows(offsets: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+    """Increasing rows (M,) of the instances ``ids`` (P,) increasing, given ``offsets`` (I+1,)
+    from :func:`instance_offsets`; O(M), independent of the other instances' rows."""
+    starts, ends = offsets[ids], offsets[ids + 1]
+    lengths = ends - starts
+    total = int(lengths.sum())
+    if total == 0:
+        return torch.zeros(0, dtype=torch.long, device=offsets.device)
+    # row k of the output = starts[seg(k)] + (k - first output index of seg(k))
+    seg = torch.repeat_interleave(torch.arange(len(ids), device=offsets.device), lengths)
+    first_out = torch.cumsum(lengths, 0) - lengths
+    return starts[seg] + torch.arange(total, device=offsets.device) - first_out[seg]
+
+
+class ActorNode(Node):
+    """Base of box-based actor nodes: one node object holds every instance of its type.
+
+    Subclasses set ``self.poses`` (:class:`ActorPoses`) and the per-Gaussian buffer
+    ``instance`` (N,), non-decreasing (Gaussians of one instance are contiguous rows).
+    """
+
+    poses: ActorPoses
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._offsets: Optional[tuple[torch.Tensor, torch.Tensor]] = None  # (instance tensor, offsets) cache
+
+    def instance_offsets(self) -> torch.Tensor:
+        """(I+1,) row offsets per instance, recomputed only when the Gaussians change."""
+        instance = self.gaussian_buffers["instance"]
+        if self._offsets is None or self._offsets[0] is not instance:
+            self._offsets = (instance, instance_offsets(instance, self.poses.num_instances))
+        return self._offsets[1]
+
+    def present_gaussians(self, ids: torch.Tensor) -> tuple[Gaussians, torch.Tensor]:
+        """Box-local Gaussians of the instances ``ids`` (P,) increasing, and their rows (M,);
+        gradients reach the parameters row-sparse (only these rows)."""
+        rows = segment_rows(self.instance_offsets(), ids)
+        return Gaussians(*(gather_rows(self.gaussian_params[k], rows) for k in GAUSSIAN_KEYS)), rows
+
+    def row_order(self) -> Optional[torch.Tensor]:
+        instance = self.gaussian_buffers["instance"]
+        if len(instance) < 2 or not bool((instance[1:] < instance[:-1]).any()):
+            return None
+        return torch.sort(instance, stable=True).indices
 
 
 def box_local_lidar(scene: SceneData, track: ActorTrack, frames: np.ndarray, margin: float = 0.1) -> tuple[np.ndarray, np.ndarray]:

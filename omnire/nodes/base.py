@@ -16,6 +16,8 @@ Contract:
   with costly per-Gaussian work may skip Gaussians it cannot see (the rasterizer culls
   anyway); None means "no camera": return everything.
 - ``param_groups()`` lists learning-rate groups, per-Gaussian ones by key.
+- ``row_order()`` (optional): a permutation restoring the row order the node relies on
+  after densification (actor nodes keep each instance's rows contiguous).
 """
 from __future__ import annotations
 
@@ -130,6 +132,12 @@ class Node(nn.Module):
     def gaussian_lrs(self) -> dict[str, tuple[float, Optional[float]]]:
         """Per-Gaussian learning rates: key -> (lr, final lr or None)."""
         return {}
+
+    def row_order(self) -> Optional[torch.Tensor]:
+        """A permutation (N,) of the Gaussian rows that restores the order the node relies on
+        after densification appended or removed rows, or None when the order is fine.
+        Applied to every per-Gaussian tensor and optimiser moment by the strategy."""
+        return None
 
     def extra_prune_mask(self) -> Optional[torch.Tensor]:
         """(N,) bool of Gaussians to prune for node-specific reasons (e.g. left their box)."""

@@ -2,7 +2,6 @@
 non-finite inputs, plugin registration and selection."""
 from __future__ import annotations
 
-import math
 
 import pytest
 import torch

@@ -13,7 +13,7 @@ if not OK:
     pytest.skip(f"cpu rasterizer extension unavailable: {REASON}", allow_module_level=True)
 
 from omnire_rasterizer_cpu.rasterizer import CpuRasterizer  # noqa: E402
-from omnire_rasterizer_cpu.testing import look_at_camera, random_scene  # noqa: E402
+from omnire_rasterizer_cpu.testing import random_scene  # noqa: E402
 
 W, H = 48, 32
 STEPS = 2000

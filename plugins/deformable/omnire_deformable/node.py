@@ -23,10 +23,9 @@ import torch
 from torch import nn
 
 from omnire.camera import PinholeCamera
-from omnire.gaussians import Gaussians
 from omnire.nn import DeformationMLP, positional_encoding
-from omnire.nodes.actors import ActorPoses, init_box_gaussians, rows_present, transform_instances
-from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, ParamGroup
+from omnire.nodes.actors import ActorNode, ActorPoses, init_box_gaussians, transform_instances
+from omnire.nodes.base import GaussianNodeConfig, NodeContext, ParamGroup
 
 
 @dataclasses.dataclass
@@ -69,7 +68,7 @@ class DeformableConfig(GaussianNodeConfig):
     """Box translation refinement lr."""
 
 
-class DeformableNode(Node):
+class DeformableNode(ActorNode):
     def __init__(self, config: DeformableConfig, context: NodeContext, tracks: list) -> None:
         super().__init__()
         self.config = config
@@ -108,10 +107,8 @@ class DeformableNode(Node):
         ids, R, t = self.poses.at(frame)
         if len(ids) == 0:
             return None
-        instance_all = self.gaussian_buffers["instance"]
-        rows = rows_present(instance_all, ids, self.poses.num_instances)
-        instance = instance_all[rows]
-        g = Gaussians.from_params(self.gaussian_params, rows)
+        g, rows = self.present_gaussians(ids)
+        instance = self.gaussian_buffers["instance"][rows]
         if step is None or step >= self.config.warmup_steps:
             d_mu, d_q, d_s = self.deformation(g.means, instance, time)
             q = g.quats / g.quats.norm(dim=-1, keepdim=True).clamp_min(1e-8)

@@ -16,9 +16,8 @@ import torch
 from torch import nn
 
 from omnire.camera import PinholeCamera
-from omnire.gaussians import Gaussians
-from omnire.nodes.actors import ActorPoses, init_box_gaussians, rows_present, transform_instances
-from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, ParamGroup
+from omnire.nodes.actors import ActorNode, ActorPoses, init_box_gaussians, transform_instances
+from omnire.nodes.base import GaussianNodeConfig, NodeContext, ParamGroup
 
 
 @dataclasses.dataclass
@@ -42,7 +41,7 @@ class RigidConfig(GaussianNodeConfig):
     """Prune Gaussians farther outside their box than this fraction of its half-size."""
 
 
-class RigidNode(Node):
+class RigidNode(ActorNode):
     def __init__(self, config: RigidConfig, context: NodeContext, tracks: list) -> None:
         super().__init__()
         self.config = config
@@ -64,10 +63,8 @@ class RigidNode(Node):
         ids, R, t = self.poses.at(frame)
         if len(ids) == 0:
             return None  # absent actors cost nothing
-        instance = self.gaussian_buffers["instance"]
-        rows = rows_present(instance, ids, self.poses.num_instances)
-        g = Gaussians.from_params(self.gaussian_params, rows)
-        return transform_instances(g, instance[rows], ids, R, t), rows
+        g, rows = self.present_gaussians(ids)
+        return transform_instances(g, self.gaussian_buffers["instance"][rows], ids, R, t), rows
 
     def gaussian_lrs(self):
         return self.config.gaussian_lrs(self.scene_radius)

@@ -1,7 +1,5 @@
 """Sky node: directions map to the right texels, gradients reach the map, compositing."""
-import math
 
-import numpy as np
 import torch
 
 from omnire.data.images import ImageCache

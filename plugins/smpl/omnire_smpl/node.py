@@ -43,11 +43,10 @@ from torch import nn
 from omnire.body.template import BodyTemplate, load_template
 from omnire.camera import PinholeCamera
 from omnire.data.scene import HumanPoseSequence
-from omnire.gaussians import Gaussians
 from omnire.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
 from omnire.humanpose import neutral_body_pose, prepare_human_poses
-from omnire.nodes.actors import ActorPoses, axis_angle_to_rotmat, rows_present
-from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, ParamGroup, init_gaussian_params
+from omnire.nodes.actors import ActorNode, ActorPoses, axis_angle_to_rotmat
+from omnire.nodes.base import GaussianNodeConfig, NodeContext, ParamGroup, init_gaussian_params
 from omnire.pointcloud import colour_from_images, knn_scales
 from omnire_smpl.lbs import blend_transforms, forward_kinematics, sparse_weights
 
@@ -126,7 +125,7 @@ def slerp_rotmats(R0: torch.Tensor, R1: torch.Tensor, w: torch.Tensor) -> torch.
     return quat_to_rotmat(a * q0 + b * q1)
 
 
-class SMPLNode(Node):
+class SMPLNode(ActorNode):
     def __init__(self, config: SMPLConfig, context: NodeContext, tracks: list) -> None:
         super().__init__()
         self.config = config
@@ -268,8 +267,7 @@ class SMPLNode(Node):
         if len(ids) == 0:
             return None  # absent people cost nothing
         instance = self.gaussian_buffers["instance"]
-        rows = rows_present(instance, ids, self.poses.num_instances)
-        g = Gaussians.from_params(self.gaussian_params, rows)
+        g, rows = self.present_gaussians(ids)
         rots = self.pose_rotations(ids, frame)  # (P, 24, 3, 3)
         eye = torch.eye(3, device=rots.device).expand(len(ids), 1, 3, 3)
         _, A = forward_kinematics(self.joints[ids], self.parents, torch.cat([eye, rots[:, 1:]], 1))
