@@ -73,3 +73,14 @@ def _render_texture(c2w: np.ndarray, K: np.ndarray, width: int, height: int) -> 
     img = np.where((hit_wall & p_wall_top)[..., None], wall_col, img)
     img = np.where((~hit_wall & np.isfinite(t_ground))[..., None], ground_col, img)
     return img
+
+
+def assert_same_state(a: dict, b: dict) -> None:
+    """Two model state dicts hold the same keys, shapes and values (resume tests)."""
+    import torch
+
+    assert a.keys() == b.keys()
+    for k in a:
+        if torch.is_tensor(a[k]):
+            assert a[k].shape == b[k].shape, k
+            torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6, msg=k)

@@ -11,6 +11,8 @@ from omnire.plugins import load_plugins
 from omnire.strategy import DensifyConfig
 from omnire.trainer import TrainConfig, Trainer, TrainerConfig, TrainingError
 
+from scene_helpers import assert_same_state
+
 
 def small_method(reset_every: int = 0) -> MethodConfig:
     return MethodConfig(
@@ -49,12 +51,7 @@ def test_resume_matches_uninterrupted_run(tiny_scene, tmp_path):
     resumed = make_trainer(tiny_scene, tmp_path, steps=40, resume=ckpt, name="resumed", reset_every=30)
     assert resumed.step == 20
     resumed.train()
-    a, b = full.model.state_dict(), resumed.model.state_dict()
-    assert a.keys() == b.keys()
-    for k in a:
-        if torch.is_tensor(a[k]):
-            assert a[k].shape == b[k].shape, k
-            torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6, msg=k)
+    assert_same_state(full.model.state_dict(), resumed.model.state_dict())
 
 
 def test_non_finite_parameters_are_never_checkpointed(tiny_scene, tmp_path):

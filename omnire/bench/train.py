@@ -58,6 +58,10 @@ class TrainBenchArgs:
     """Write psnr_vs_time.png (needs matplotlib)."""
     report_only: bool = False
     """Train nothing: rewrite results.md and the plot from the results.json in --output."""
+    reuse: bool = False
+    """Keep the results already in --output/results.json of entries whose exact training command
+    (scene, budget, flags) succeeded before; train only the others (continue an interrupted
+    comparison, or add methods to one)."""
 
 
 def parse_entry(entry: str) -> tuple[str, str, list[str]]:
@@ -71,16 +75,22 @@ def parse_entry(entry: str) -> tuple[str, str, list[str]]:
     return label.strip(), tokens[0], tokens[1:]
 
 
+def _command(args: TrainBenchArgs, entry: str) -> list[str]:
+    """The ``omnire train`` command line of one ``--methods`` entry."""
+    label, method, flags = parse_entry(entry)
+    eval_every = max(1, args.steps // max(1, args.checkpoints))
+    return [sys.executable, "-m", "omnire.cli", "train", method, args.dataparser, "--data", str(args.data),
+            *shlex.split(args.dataparser_args), *shlex.split(args.method_args), *flags,
+            "--trainer.max-steps", str(args.steps), "--trainer.max-seconds", str(args.seconds),
+            "--trainer.eval-every", str(eval_every), "--trainer.checkpoint-every", str(args.steps),
+            "--trainer.threads", str(args.threads), "--trainer.output-dir", str(args.output / "runs"),
+            "--trainer.run-name", label, "--trainer.no-progress"]
+
+
 def _run_method(args: TrainBenchArgs, entry: str) -> dict:
     label, method, flags = parse_entry(entry)
     run_dir = args.output / "runs" / label
-    eval_every = max(1, args.steps // max(1, args.checkpoints))
-    cmd = [sys.executable, "-m", "omnire.cli", "train", method, args.dataparser, "--data", str(args.data),
-           *shlex.split(args.dataparser_args), *shlex.split(args.method_args), *flags,
-           "--trainer.max-steps", str(args.steps), "--trainer.max-seconds", str(args.seconds),
-           "--trainer.eval-every", str(eval_every), "--trainer.checkpoint-every", str(args.steps),
-           "--trainer.threads", str(args.threads), "--trainer.output-dir", str(run_dir.parent),
-           "--trainer.run-name", label, "--trainer.no-progress"]
+    cmd = _command(args, entry)
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, COLUMNS="200"))
     elapsed = time.perf_counter() - t0
@@ -238,8 +248,17 @@ def main(argv: list[str]) -> int:
         console.print(f"[red]error:[/] --methods: labels must be unique, got {labels}")
         return 2
     args.output.mkdir(parents=True, exist_ok=True)
+    previous: dict[tuple[str, ...], dict] = {}
+    if args.reuse and (args.output / "results.json").is_file():
+        previous = {tuple(r["command"]): r for r in json.loads((args.output / "results.json").read_text())["results"]
+                    if r.get("exit_code") == 0}
     results = []
     for m in methods:
+        kept = previous.get(tuple(_command(args, m)[2:]))
+        if kept is not None:
+            console.print(f"[bold]{m}[/]: reusing the earlier result (same command)")
+            results.append(kept)
+            continue
         console.print(f"[bold]{m}[/]: training ({args.steps} steps)...")
         r = _run_method(args, m)
         results.append(r)
