@@ -18,6 +18,8 @@ count, as dense Adam does for every row.
 """
 from __future__ import annotations
 
+import itertools
+
 import torch
 
 
@@ -88,9 +90,7 @@ def sparse_adam_step(param: torch.Tensor, grad: torch.Tensor, state: dict, group
     firsts, lengths = row_runs(rows)
     if not firsts:
         return
-    offsets = [0]
-    for n in lengths[:-1]:
-        offsets.append(offsets[-1] + n)
+    offsets = list(itertools.accumulate(lengths[:-1], initial=0))  # where each run starts in ``values``
     views = [param.narrow(0, r, n) for r, n in zip(firsts, lengths)]
     grads = [values.narrow(0, o, n) for o, n in zip(offsets, lengths)]
     exp_avgs = [state["exp_avg"].narrow(0, r, n) for r, n in zip(firsts, lengths)]
@@ -105,15 +105,12 @@ def sparse_adam_step(param: torch.Tensor, grad: torch.Tensor, state: dict, group
     state["step"] += 1
 
 
-def step_sparse_params(optimizer: torch.optim.Optimizer) -> int:
+def step_sparse_params(optimizer: torch.optim.Optimizer) -> None:
     """Step every parameter of ``optimizer`` whose gradient is sparse with
     :func:`sparse_adam_step` and clear that gradient, so the optimiser's own (dense) step
-    skips it. Returns the number of parameters stepped."""
-    n = 0
+    skips it."""
     for group in optimizer.param_groups:
         for p in group["params"]:
             if p.grad is not None and p.grad.layout == torch.sparse_coo:
                 sparse_adam_step(p, p.grad, optimizer.state[p], group)
                 p.grad = None
-                n += 1
-    return n

@@ -105,7 +105,7 @@ def main(argv: list[str]) -> int:
     early = np.array([0, 1])
     base = next(t for t in scene.tracks if t.category == "vehicle" and t.present[:2].all()
                 and visible_in_cameras(t, scene, early))
-    late = scene.train_frames[scene.train_frames >= scene.num_frames // 2]
+    late = set(scene.train_frames[scene.train_frames >= scene.num_frames // 2].tolist())
     trainers, views = [], []
     for k in args.extra_actors:
         s = copy.copy(scene)
@@ -117,7 +117,7 @@ def main(argv: list[str]) -> int:
             t.present[:2] = True
             s.tracks.append(t)
         trainers.append(_trainer(plugins, "streetgs", s))
-        views.append([v for v in trainers[-1].train_views if v.frame in set(late.tolist())])
+        views.append([v for v in trainers[-1].train_views if v.frame in late])
     times = _time_steps(trainers, views, args.warmup, args.steps)
     absent_rows = [{"extra_actors": k, "rigid_instances": len(tr.model.assignment.get("rigid", [])),
                     "ms_per_step": ms, "gaussians": tr.model.num_gaussians()}

@@ -127,10 +127,15 @@ def transform_instances(g: Gaussians, instance: torch.Tensor, ids: torch.Tensor,
     return dataclasses.replace(g, means=means, quats=quat_multiply(q[slot], g.quats))
 
 
+def rows_grouped(instance: torch.Tensor) -> bool:
+    """True when ``instance`` (N,) is non-decreasing: each instance's rows are contiguous."""
+    return len(instance) < 2 or not bool((instance[1:] < instance[:-1]).any())
+
+
 def instance_offsets(instance: torch.Tensor, num_instances: int) -> torch.Tensor:
     """(I+1,) offsets of the contiguous rows of each instance in non-decreasing ``instance``
     (N,): instance i owns rows offsets[i]:offsets[i+1]."""
-    if len(instance) > 1 and bool((instance[1:] < instance[:-1]).any()):
+    if not rows_grouped(instance):
         raise ValueError("instance rows are not grouped (instance buffer must be non-decreasing)")
     return torch.searchsorted(instance, torch.arange(num_instances + 1, device=instance.device))
 
@@ -177,9 +182,7 @@ class ActorNode(Node):
 
     def row_order(self) -> Optional[torch.Tensor]:
         instance = self.gaussian_buffers["instance"]
-        if len(instance) < 2 or not bool((instance[1:] < instance[:-1]).any()):
-            return None
-        return torch.sort(instance, stable=True).indices
+        return None if rows_grouped(instance) else torch.sort(instance, stable=True).indices
 
 
 def box_local_lidar(scene: SceneData, track: ActorTrack, frames: np.ndarray, margin: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
