@@ -12,8 +12,9 @@ World Gaussians of person i at frame t (OmniRe: world = T_h(t) (x) LBS(theta(t),
 - ``theta_i(t)``: 23 body-joint rotations; ``G_i(t)``: global orientation relative to the
   box (world orientation = R_box G). Both start from the pose sequence in
   ``scene.human_poses`` and are refined (right-multiplied axis-angle deltas per frame,
-  lr 5e-5 -> 1e-5). Held-out frames get no image gradients, so their rotations are SLERPed
-  between the refined poses of the nearest training frames of that person.
+  lr 5e-4 -> 1e-4, 10x the paper's, see docs/methods.md). Held-out frames get no image
+  gradients, so their rotations are SLERPed between the refined poses of the nearest
+  training frames of that person.
 - ``R_box, t_box``: the shared :class:`~omnire.nodes.actors.ActorPoses` (box centre and its
   refinement; the box rotation delta is not optimised, the refined global orientation
   covers it). The template's vertical centre sits at the box centre.
@@ -64,9 +65,11 @@ class SMPLConfig(GaussianNodeConfig):
     """Scale each template to its box height (skipped when betas and shape blend shapes give the shape)."""
     refine_poses: bool = True
     """Learn per-frame body poses and global orientations (body-pose refinement)."""
-    lr_pose: float = 5e-5
-    """Body pose / global orientation refinement lr (decays to lr_pose_final)."""
-    lr_pose_final: float = 1e-5
+    lr_pose: float = 5e-4
+    """Body pose / global orientation refinement lr (decays to lr_pose_final). The paper's
+    5e-5 -> 1e-5 fine-tunes estimated poses over 30k steps; 10x that suits this CPU budget
+    (2k steps) and neutral starting poses (docs/methods.md)."""
+    lr_pose_final: float = 1e-4
     """Final body pose lr."""
     smoothness_max_offset: int = 5
     """Pose smoothness compares frames t-d, t, t+d with d random in 1..this."""

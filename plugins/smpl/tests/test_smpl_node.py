@@ -122,7 +122,7 @@ def test_gradients_reach_pose_parameters_and_smoothness(tmp_path):
     reg["pose_smoothness"].backward()
     assert node.delta_body.grad.abs().sum() > 0
     names = {grp.name: grp for grp in node.param_groups()}
-    assert names["human_pose"].lr == 5e-5 and names["human_pose"].lr_final == 1e-5
+    assert (names["human_pose"].lr, names["human_pose"].lr_final) == (node.config.lr_pose, node.config.lr_pose_final)
     assert "box_translation" in names and "box_rotation" not in names
 
 
