@@ -42,4 +42,9 @@ def omnire_register_commands(registry) -> None:
                                   commands.render_main))
     registry.register(CommandSpec("plugins", "list every registry entry and the distribution providing it",
                                   commands.plugins_main))
-    registry.register(CommandSpec("bench", "benchmarks: omnire bench raster | train ...", commands.bench_main))
+    registry.register(CommandSpec("bench raster", "rasterizer speed and memory across backends (JSON + table)",
+                                  commands.bench_raster_main))
+    registry.register(CommandSpec("bench train", "methods against each other: error against training time",
+                                  commands.bench_train_main))
+    registry.register(CommandSpec("bench skip", "cost of what a scene does not need (no humans, absent actors)",
+                                  commands.bench_skip_main))

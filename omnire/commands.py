@@ -205,11 +205,19 @@ def plugins_main(argv: list[str], plugins) -> int:
     return 0
 
 
-def bench_main(argv: list[str], plugins) -> int:
-    benches = {"raster": "omnire.bench.raster", "train": "omnire.bench.train", "skip": "omnire.bench.skip"}
-    if not argv or argv[0] not in benches:
-        Console(stderr=True).print(f"usage: omnire bench {{{'|'.join(benches)}}} [flags]")
-        return 2
-    import importlib
+def bench_raster_main(argv: list[str], plugins) -> int:
+    from omnire.bench import raster
 
-    return int(importlib.import_module(benches[argv[0]]).main(argv[1:]) or 0)
+    return int(raster.main(argv, plugins) or 0)
+
+
+def bench_train_main(argv: list[str], plugins) -> int:
+    from omnire.bench import train
+
+    return int(train.main(argv, plugins) or 0)
+
+
+def bench_skip_main(argv: list[str], plugins) -> int:
+    from omnire.bench import skip
+
+    return int(skip.main(argv, plugins) or 0)

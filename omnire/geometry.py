@@ -1,10 +1,42 @@
-"""Small rotation/pose helpers (quaternions wxyz). Conversions use kornia."""
+"""Rotations and rigid transforms: the one implementation of each conversion in the tree.
+
+Quaternions are wxyz (DESIGN.md section 3). Every function takes torch tensors and is
+differentiable; each also accepts numpy arrays (computed in float64, returned as numpy), so
+readers and the body pipeline use the same code as the nodes.
+"""
 from __future__ import annotations
 
+import functools
+from typing import Any, Callable, TypeVar
+
+import numpy as np
 import torch
-from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
+from kornia.geometry.conversions import rotation_matrix_to_quaternion
+
+F = TypeVar("F", bound=Callable[..., Any])
 
 
+def numpy_compatible(fn: F) -> F:
+    """Let a torch function take numpy arrays: numpy inputs are converted to float64
+    tensors and the result back to numpy (tuples element-wise)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        if not any(isinstance(a, np.ndarray) for a in list(args) + list(kwargs.values())):
+            return fn(*args, **kwargs)
+
+        def to_t(a: Any) -> Any:
+            return torch.from_numpy(np.asarray(a, dtype=np.float64)) if isinstance(a, np.ndarray) else a
+
+        out = fn(*(to_t(a) for a in args), **{k: to_t(v) for k, v in kwargs.items()})
+        if isinstance(out, tuple):
+            return tuple(o.numpy() if torch.is_tensor(o) else o for o in out)
+        return out.numpy()
+
+    return wrapper  # type: ignore[return-value]
+
+
+@numpy_compatible
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product of (..., 4) wxyz quaternions (broadcasting)."""
     aw, ax, ay, az = a.unbind(-1)
@@ -20,19 +52,100 @@ def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     )
 
 
-def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) rotation -> (..., 4) unit wxyz."""
-    shape = R.shape[:-2]
-    return rotation_matrix_to_quaternion(R.reshape(-1, 3, 3).contiguous()).reshape(*shape, 4)
+@numpy_compatible
+def normalize_quats(q: torch.Tensor) -> torch.Tensor:
+    """(..., 4) wxyz of any norm -> unit quaternions; zero quaternions become the identity
+    (with finite gradients), as the rasterizer contract requires."""
+    norm2 = (q * q).sum(-1, keepdim=True)
+    zero = norm2 < 1e-24
+    identity = torch.zeros_like(q)
+    identity[..., 0] = 1.0
+    safe = torch.where(zero, identity, q)
+    return safe * torch.rsqrt(torch.where(zero, torch.ones_like(norm2), norm2))
 
 
+@numpy_compatible
 def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """(..., 4) wxyz (normalised here) -> (..., 3, 3)."""
-    shape = q.shape[:-1]
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    return quaternion_to_rotation_matrix(q.reshape(-1, 4)).reshape(*shape, 3, 3)
+    """(..., 4) wxyz of any norm (normalised here; zero = identity) -> (..., 3, 3)."""
+    w, x, y, z = normalize_quats(q).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(*q.shape[:-1], 3, 3)
 
 
+@numpy_compatible
+def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotation -> (..., 4) unit wxyz with w >= 0."""
+    shape = R.shape[:-2]
+    q = rotation_matrix_to_quaternion(R.reshape(-1, 3, 3).contiguous()).reshape(*shape, 4)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+@numpy_compatible
+def axis_angle_to_rotmat(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) axis-angle -> (..., 3, 3), differentiable at 0 (Rodrigues with a Taylor
+    expansion for tiny angles)."""
+    theta2 = (v * v).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
+    small = theta2 < 1e-12
+    theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / torch.where(small, torch.ones_like(theta2), theta2))
+    x, y, z = v.unbind(-1)
+    zero = torch.zeros_like(x)
+    Kx = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*v.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=v.dtype, device=v.device).expand_as(Kx)
+    return eye + a * Kx + b * (Kx @ Kx)
+
+
+@numpy_compatible
+def rotmat_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotation -> (..., 3) axis-angle with angle in [0, pi]."""
+    q = rotmat_to_quat(R)
+    xyz = q[..., 1:]
+    s = xyz.norm(dim=-1, keepdim=True)
+    angle = 2 * torch.atan2(s, q[..., :1])
+    # angle / sin(angle / 2) -> 2 as the angle goes to 0
+    factor = torch.where(s < 1e-8, torch.full_like(s, 2.0), angle / s.clamp_min(1e-12))
+    return xyz * factor
+
+
+@numpy_compatible
+def slerp_quats(q0: torch.Tensor, q1: torch.Tensor, w: torch.Tensor | float) -> torch.Tensor:
+    """Spherical interpolation of (..., 4) unit quaternions along the shorter arc; ``w``
+    (...,) or a float, 0 gives q0 and 1 gives q1."""
+    w = torch.as_tensor(w, dtype=q0.dtype, device=q0.device)
+    dot = (q0 * q1).sum(-1, keepdim=True)
+    q1 = torch.where(dot < 0, -q1, q1)
+    theta = torch.arccos(dot.abs().clamp(max=1 - 1e-7))
+    s = torch.sin(theta)
+    w = w[..., None] if w.ndim else w
+    near = s < 1e-5
+    s_safe = torch.where(near, torch.ones_like(s), s)
+    a = torch.where(near, 1 - w, torch.sin((1 - w) * theta) / s_safe)
+    b = torch.where(near, w, torch.sin(w * theta) / s_safe)
+    return a * q0 + b * q1
+
+
+@numpy_compatible
+def slerp_rotmats(R0: torch.Tensor, R1: torch.Tensor, w: torch.Tensor | float) -> torch.Tensor:
+    """SLERP between (..., 3, 3) rotations with weights ``w`` (...,) or a float."""
+    return quat_to_rotmat(slerp_quats(rotmat_to_quat(R0), rotmat_to_quat(R1), w))
+
+
+@numpy_compatible
+def rot_z(angle: torch.Tensor) -> torch.Tensor:
+    """(...,) angles in radians -> (..., 3, 3) rotations about +z."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    zero, one = torch.zeros_like(c), torch.ones_like(c)
+    return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).reshape(*angle.shape, 3, 3)
+
+
+@numpy_compatible
 def invert_se3(T: torch.Tensor) -> torch.Tensor:
     """(..., 4, 4) rigid transform -> its inverse."""
     R, t = T[..., :3, :3], T[..., :3, 3:]

@@ -131,8 +131,7 @@ class DynamicMasks:
         cam = self.scene.cameras[view.camera]
         given = (cam.dynamic_mask_paths or {}).get(kind)
         if given is not None:
-            m = self.images.get(given[view.frame], cam.width, cam.height, channels=1)
-            return (m > 0.5).float().to(self.device)
+            return self.images.camera_mask(cam, given[view.frame]).to(self.device)
         cats = {"human": HUMAN_CATEGORIES, "vehicle": VEHICLE_CATEGORIES,
                 "all": HUMAN_CATEGORIES | VEHICLE_CATEGORIES}[kind]
         owner = self._nearest_box(view)
@@ -190,8 +189,7 @@ class SkyMasks:
     def _build(self, view: View) -> Optional[torch.Tensor]:
         cam = self.scene.cameras[view.camera]
         if cam.sky_mask_paths is not None:
-            m = self.images.get(cam.sky_mask_paths[view.frame], cam.width, cam.height, channels=1)
-            return (m > 0.5).float().to(self.device)
+            return self.images.camera_mask(cam, cam.sky_mask_paths[view.frame]).to(self.device)
         if self.scene.lidar is None:
             return None
         f = view.frame

@@ -1,9 +1,14 @@
 """Plugin discovery and loading, with per-plugin error isolation.
 
 Every plugin, the built-ins included, is a module with pluggy hook implementations. External
-ones are found through the ``omnire`` entry-point group. A plugin that fails to import or
-whose hook raises is recorded as a :class:`PluginFailure` (distribution, version, error)
-and skipped; the others keep working. Strict mode turns any failure into an exception.
+ones are found through the ``omnire`` entry-point group. Each plugin registers into a
+staging area first; its entries are committed only when all of its hooks succeeded, so a
+plugin that fails part-way leaves nothing behind. A plugin that fails to import, whose hook
+raises, or that registers a name another plugin also registers is recorded as a
+:class:`PluginFailure` and skipped; the others keep working. Name clashes are resolved the
+same way whatever the load order: the core's built-ins keep their names and the plugin is
+refused; two plugins claiming one name are both refused. Strict mode turns any failure into
+an exception.
 
 Environment variables:
 
@@ -19,39 +24,20 @@ import os
 import traceback
 from importlib import metadata
 from types import ModuleType
-from typing import Any
+from typing import Any, Callable, Optional, TypeVar
 
 import pluggy
 
 from omnire import hookspecs
-from omnire.registry import (
-    CommandSpec,
-    DataparserSpec,
-    LossSpec,
-    MethodSpec,
-    NodeTypeSpec,
-    PoseEstimatorSpec,
-    Provenance,
-    RasterizerSpec,
-    Registry,
-)
+from omnire.errors import UserError
+from omnire.registry import REGISTRY_KINDS, Provenance, Registry
 
 ENTRY_POINT_GROUP = "omnire"
 BUILTIN_MODULES = ("omnire.builtins",)
-
-# hook name -> attribute of Plugins holding the registry it fills
-_HOOKS = {
-    "omnire_register_dataparsers": "dataparsers",
-    "omnire_register_node_types": "node_types",
-    "omnire_register_rasterizers": "rasterizers",
-    "omnire_register_losses": "losses",
-    "omnire_register_methods": "methods",
-    "omnire_register_commands": "commands",
-    "omnire_register_pose_estimators": "pose_estimators",
-}
+T = TypeVar("T")
 
 
-class PluginLoadError(RuntimeError):
+class PluginLoadError(UserError):
     """Raised in strict mode when any plugin fails."""
 
 
@@ -61,7 +47,7 @@ class PluginFailure:
     """Entry-point name (or module for built-ins)."""
     provenance: Provenance
     stage: str
-    """``import`` or the hook that raised."""
+    """``import``, the hook that raised, ``conflict``, or a call made later (``method factory``, ...)."""
     error: str
     """One-line error message."""
     traceback: str
@@ -77,23 +63,40 @@ def _env_flag(name: str) -> bool:
     return os.environ.get(name, "").strip().lower() in {"1", "true", "yes", "on"}
 
 
-@dataclasses.dataclass
 class Plugins:
-    """All registries, filled by the loaded plugins. Create with :func:`load_plugins`."""
+    """All registries (one attribute per :data:`~omnire.registry.REGISTRY_KINDS` entry, e.g.
+    ``plugins.node_types``), filled by the loaded plugins. Create with :func:`load_plugins`."""
 
-    dataparsers: Registry[DataparserSpec]
-    node_types: Registry[NodeTypeSpec]
-    rasterizers: Registry[RasterizerSpec]
-    losses: Registry[LossSpec]
-    methods: Registry[MethodSpec]
-    commands: Registry[CommandSpec]
-    loaded: list[tuple[str, Provenance]]
-    failures: list[PluginFailure]
-    pose_estimators: Registry[PoseEstimatorSpec] = dataclasses.field(
-        default_factory=lambda: Registry("pose estimator"))
+    def __init__(self, strict: bool = False) -> None:
+        self._registries: dict[str, Registry[Any]] = {k.attr: Registry(k.label) for k in REGISTRY_KINDS}
+        self.loaded: list[tuple[str, Provenance]] = []
+        self.failures: list[PluginFailure] = []
+        self.strict = strict
+
+    def __getattr__(self, attr: str) -> Registry[Any]:
+        registries = self.__dict__.get("_registries", {})
+        if attr in registries:
+            return registries[attr]
+        raise AttributeError(attr)
 
     def registries(self) -> dict[str, Registry[Any]]:
-        return {attr: getattr(self, attr) for attr in _HOOKS.values()}
+        return dict(self._registries)
+
+    def call(self, registry: Registry[Any], name: str, stage: str, fn: Callable[[], T]) -> Optional[T]:
+        """Call a plugin-provided ``fn`` for the entry ``name`` of ``registry`` when the run
+        may do without it (listing methods for ``--help``, probing rasterizers): an exception
+        is recorded as a failure of the plugin that registered the entry and None returned
+        (raised in strict mode)."""
+        try:
+            return fn()
+        except Exception as exc:  # noqa: BLE001 - isolation is the point
+            prov = registry.provenance(name) if name in registry else Provenance("unknown", "unknown")
+            failure = PluginFailure(f"{registry.kind} {name}", prov, stage, f"{type(exc).__name__}: {exc}",
+                                    traceback.format_exc())
+            if self.strict:
+                raise PluginLoadError(failure.describe() + "\n" + failure.traceback) from exc
+            self.failures.append(failure)
+            return None
 
 
 def _entry_point_distribution(ep: metadata.EntryPoint) -> Provenance:
@@ -101,6 +104,16 @@ def _entry_point_distribution(ep: metadata.EntryPoint) -> Provenance:
     if dist is None:
         return Provenance("unknown", "unknown")
     return Provenance(dist.metadata["Name"], dist.version)
+
+
+@dataclasses.dataclass
+class _Staged:
+    """One plugin's registrations, not yet committed."""
+
+    name: str
+    provenance: Provenance
+    builtin: bool
+    registries: dict[str, Registry[Any]]
 
 
 def load_plugins(
@@ -124,63 +137,79 @@ def load_plugins(
     if entry_points is None:
         entry_points = not _env_flag("OMNIRE_NO_ENTRY_POINTS")
 
-    pm = pluggy.PluginManager(hookspecs.PROJECT)
-    pm.add_hookspecs(hookspecs)
-    plugins = Plugins(
-        dataparsers=Registry("dataparser"),
-        node_types=Registry("node type"),
-        rasterizers=Registry("rasterizer"),
-        losses=Registry("loss"),
-        methods=Registry("method"),
-        commands=Registry("command"),
-        loaded=[],
-        failures=[],
-    )
+    plugins = Plugins(strict=strict)
 
-    def fail(name: str, prov: Provenance, stage: str, exc: BaseException) -> None:
-        failure = PluginFailure(
-            name, prov, stage, f"{type(exc).__name__}: {exc}", traceback.format_exc()
-        )
+    def fail(name: str, prov: Provenance, stage: str, message: str, tb: str = "") -> None:
+        failure = PluginFailure(name, prov, stage, message, tb)
         if strict:
-            raise PluginLoadError(failure.describe() + "\n" + failure.traceback) from exc
+            raise PluginLoadError(failure.describe() + ("\n" + tb if tb else ""))
         plugins.failures.append(failure)
 
-    candidates: list[tuple[str, Provenance, Any]] = []
+    candidates: list[tuple[str, Provenance, bool, Callable[[], ModuleType]]] = []
     builtin = Provenance("omnire", _core_version())
     for module_name in BUILTIN_MODULES:
-        candidates.append((module_name, builtin, lambda m=module_name: importlib.import_module(m)))
+        candidates.append((module_name, builtin, True, lambda m=module_name: importlib.import_module(m)))
     for module in extra_modules:
-        candidates.append((module.__name__, Provenance(module.__name__, "local"), lambda m=module: m))
+        candidates.append((module.__name__, Provenance(module.__name__, "local"), False, lambda m=module: m))
     if entry_points:
         for ep in sorted(metadata.entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
-            candidates.append((ep.name, _entry_point_distribution(ep), ep.load))
+            candidates.append((ep.name, _entry_point_distribution(ep), False, ep.load))
 
-    for name, prov, load in candidates:
+    staged: list[_Staged] = []
+    for name, prov, is_builtin, load in candidates:
         if name in disabled or prov.distribution in disabled:
             continue
         try:
             module = load()
-            pm.register(module, name=name)
         except Exception as exc:  # noqa: BLE001 - isolation is the point
-            fail(name, prov, "import", exc)
+            fail(name, prov, "import", f"{type(exc).__name__}: {exc}", traceback.format_exc())
             continue
-        ok = True
-        for hook_name, attr in _HOOKS.items():
-            registry = getattr(plugins, attr)
-            for impl in getattr(pm.hook, hook_name).get_hookimpls():
-                if impl.plugin is not module:
-                    continue
-                registry._current = prov
-                try:
-                    impl.function(registry=registry)
-                except Exception as exc:  # noqa: BLE001
-                    ok = False
-                    fail(name, prov, hook_name, exc)
-                finally:
-                    registry._current = builtin
-        if ok:
-            plugins.loaded.append((name, prov))
+        pm = pluggy.PluginManager(hookspecs.PROJECT)
+        pm.add_hookspecs(hookspecs)
+        try:
+            pm.register(module, name=name)
+        except Exception as exc:  # noqa: BLE001 - a module whose hooks do not match the specs
+            fail(name, prov, "import", f"{type(exc).__name__}: {exc}", traceback.format_exc())
+            continue
+        entry = _Staged(name, prov, is_builtin, {k.attr: Registry(k.label, prov) for k in REGISTRY_KINDS})
+        try:
+            for kind in REGISTRY_KINDS:
+                getattr(pm.hook, kind.hook)(registry=entry.registries[kind.attr])
+        except Exception as exc:  # noqa: BLE001
+            fail(name, prov, "registration", f"{type(exc).__name__}: {exc}", traceback.format_exc())
+            continue
+        staged.append(entry)
+
+    for entry in _refuse_conflicts(staged, fail):
+        for attr, registry in entry.registries.items():
+            plugins._registries[attr].merge(registry)
+        plugins.loaded.append((entry.name, entry.provenance))
     return plugins
+
+
+def _refuse_conflicts(staged: list[_Staged], fail: Callable[..., None]) -> list[_Staged]:
+    """The staged plugins that claim no name another one claims. A plugin registering a name
+    a built-in has is refused; plugins sharing a name are all refused. The result does not
+    depend on the order the plugins were loaded in."""
+    refused: dict[int, list[str]] = {}
+    for kind in REGISTRY_KINDS:
+        owners: dict[str, list[int]] = {}
+        for i, entry in enumerate(staged):
+            for name in entry.registries[kind.attr].names():
+                owners.setdefault(name, []).append(i)
+        for name, idx in owners.items():
+            if len(idx) < 2:
+                continue
+            builtins = [i for i in idx if staged[i].builtin]
+            losers = [i for i in idx if not staged[i].builtin] if builtins else idx
+            claimants = ", ".join(sorted(staged[i].provenance.distribution for i in idx))
+            for i in losers:
+                why = (f"registers {kind.label} {name!r}, which the core provides" if builtins else
+                       f"{kind.label} {name!r} is registered by several plugins ({claimants}); all of them refused")
+                refused.setdefault(i, []).append(why)
+    for i, reasons in sorted(refused.items()):
+        fail(staged[i].name, staged[i].provenance, "conflict", "; ".join(reasons))
+    return [entry for i, entry in enumerate(staged) if i not in refused]
 
 
 def _core_version() -> str:

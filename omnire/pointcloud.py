@@ -63,7 +63,7 @@ def colour_from_images(points: np.ndarray, scene, images, frames: np.ndarray, ma
         better = inside & (z < best)
         if not better.any():
             continue
-        img = images.get(cam.image_paths[frame], cam.width, cam.height).numpy()
+        img = images.camera_image(cam, frame).numpy()
         u = uv[better, 0].astype(int)
         v = uv[better, 1].astype(int)
         colours[better] = img[v, u]

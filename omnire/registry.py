@@ -1,13 +1,21 @@
 """Typed registries that plugins fill through pluggy hooks.
 
 A registry maps a unique name to a spec object (a small frozen dataclass describing one
-dataparser, node type, rasterizer, loss or method). The plugin manager records which
-distribution registered each entry, so ``omnire plugins`` can say where it came from.
+dataparser, node type, rasterizer, loss, method, command, pose estimator or scene writer).
+Every kind of registry is declared once, in :data:`REGISTRY_KINDS`: the plugin manager,
+``omnire plugins`` and the hook specifications are all driven by that table.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Generic, Iterator, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Generic, Iterator, Optional, TypeVar
+
+from omnire.errors import UserError
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from omnire.data.scene import ActorTrack, SceneData
 
 SpecT = TypeVar("SpecT")
 
@@ -22,8 +30,8 @@ class Provenance:
     """Distribution version."""
 
 
-class RegistryError(ValueError):
-    """Raised for duplicate names and unknown look-ups."""
+class RegistryError(UserError):
+    """An unknown name was looked up, or a name was registered twice."""
 
 
 class Registry(Generic[SpecT]):
@@ -33,24 +41,34 @@ class Registry(Generic[SpecT]):
     call :meth:`register`.
     """
 
-    def __init__(self, kind: str) -> None:
+    def __init__(self, kind: str, provenance: Provenance = Provenance("omnire", "builtin")) -> None:
         self.kind = kind
         self._entries: dict[str, SpecT] = {}
         self._provenance: dict[str, Provenance] = {}
-        # Set by the plugin manager while a plugin's hook runs.
-        self._current: Provenance = Provenance("omnire", "builtin")
+        self._default_provenance = provenance
 
     def register(self, spec: SpecT) -> SpecT:
         name = getattr(spec, "name")
+        if not isinstance(name, str) or not name.strip():
+            raise RegistryError(f"{self.kind} spec {spec!r}: name must be a non-empty string")
         if name in self._entries:
-            other = self._provenance[name]
-            raise RegistryError(
-                f"{self.kind} {name!r} is registered twice: by {other.distribution} and by "
-                f"{self._current.distribution}"
-            )
+            raise RegistryError(f"{self.kind} {name!r} is registered twice by {self._provenance[name].distribution}")
         self._entries[name] = spec
-        self._provenance[name] = self._current
+        self._provenance[name] = self._default_provenance
         return spec
+
+    def merge(self, other: "Registry[SpecT]") -> None:
+        """Take every entry of ``other`` (a plugin's staged registrations) with its provenance."""
+        for name, spec in other._entries.items():
+            if name in self._entries:
+                raise RegistryError(f"{self.kind} {name!r} is registered by {self._provenance[name].distribution} "
+                                    f"and by {other._provenance[name].distribution}")
+            self._entries[name] = spec
+            self._provenance[name] = other._provenance[name]
+
+    def remove(self, name: str) -> None:
+        self._entries.pop(name, None)
+        self._provenance.pop(name, None)
 
     def get(self, name: str) -> SpecT:
         try:
@@ -93,8 +111,11 @@ class NodeTypeSpec:
 
     ``categories`` are the actor categories the node type can model (empty for scene-level
     nodes such as background or sky). ``priority`` breaks ties when several enabled node
-    types accept one actor (higher wins); ``accepts(track, scene)`` may refuse an actor
-    (e.g. the SMPL node refuses pedestrians without pose sequences).
+    types accept one actor (higher wins). ``accepts(track, scene)`` is a pure predicate that
+    may refuse an actor (e.g. the SMPL node refuses pedestrians without pose sequences).
+    ``prepare(scene, plugins)`` runs once per scene, before any track is assigned, for the
+    node types a method enables (e.g. the SMPL node type fills ``scene.human_poses`` with
+    the registered pose estimators); it may add to the scene, never remove.
     """
 
     name: str
@@ -102,7 +123,8 @@ class NodeTypeSpec:
     config_factory: Callable[[], Any]
     categories: frozenset[str] = frozenset()
     priority: int = 0
-    accepts: Callable[[Any, Any], bool] | None = None
+    accepts: Optional[Callable[["ActorTrack", "SceneData"], bool]] = None
+    prepare: Optional[Callable[["SceneData", Any], None]] = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -138,24 +160,64 @@ class MethodSpec:
 
 @dataclasses.dataclass(frozen=True)
 class CommandSpec:
-    """An ``omnire <name>`` sub-command. ``main(argv, plugins)`` runs it and returns an exit code."""
+    """An ``omnire <name>`` sub-command. ``main(argv, plugins)`` runs it and returns an exit
+    code. Names may have several words (``bench raster``): the CLI takes the longest name
+    that the command line starts with, and ``omnire bench`` lists the ``bench *`` commands."""
 
     name: str
     description: str
-    main: Callable[[list[str], Any], int | None]
+    main: Callable[[list[str], Any], Optional[int]]
 
 
 @dataclasses.dataclass(frozen=True)
 class PoseEstimatorSpec:
-    """A human pose estimator for the human pose pipeline (:mod:`omnire.humanpose`).
+    """A per-camera human pose estimator for the human pose pipeline (``omnire_body``).
 
-    ``factory(**kw)`` builds an object with ``estimate(scene, camera, frames, boxes) ->
-    list[HumanTracklet]`` (per-camera tracklets with per-frame SMPL rotations in the camera's
-    OpenCV frame); ``available()`` returns ``(ok, reason)`` (e.g. a missing optional package).
-    ``auto`` selection takes the available one with the highest priority."""
+    ``factory(**kw)`` builds an object with ``estimate(scene, camera, rois) ->
+    list[HumanTracklet]`` (see ``omnire_body.humanpose.PoseEstimator``); ``available()``
+    returns ``(ok, reason)`` (e.g. a missing optional package). ``auto`` selection takes the
+    available one with the highest priority."""
 
     name: str
     description: str
     factory: Callable[..., Any]
     available: Callable[[], tuple[bool, str]]
     priority: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneWriterSpec:
+    """Writes a scene in a dataset's own on-disk layout (``omnire synth --format <name>``).
+
+    ``write(source, output)`` converts the synthetic scene in ``source`` (the processed
+    layout written by ``omnire synth``, with its ``ground_truth.*``) into ``output``, which
+    exists and is empty. The dataparser of the same name reads the result back.
+    """
+
+    name: str
+    description: str
+    write: Callable[["Path", "Path"], None]
+
+
+@dataclasses.dataclass(frozen=True)
+class RegistryKind:
+    """One kind of registry: the attribute of :class:`omnire.plugins.Plugins` holding it,
+    what an entry is called in messages, the spec class and the hook that fills it."""
+
+    attr: str
+    label: str
+    spec: type
+    hook: str
+
+
+REGISTRY_KINDS: tuple[RegistryKind, ...] = (
+    RegistryKind("dataparsers", "dataparser", DataparserSpec, "omnire_register_dataparsers"),
+    RegistryKind("node_types", "node type", NodeTypeSpec, "omnire_register_node_types"),
+    RegistryKind("rasterizers", "rasterizer", RasterizerSpec, "omnire_register_rasterizers"),
+    RegistryKind("losses", "loss", LossSpec, "omnire_register_losses"),
+    RegistryKind("methods", "method", MethodSpec, "omnire_register_methods"),
+    RegistryKind("commands", "command", CommandSpec, "omnire_register_commands"),
+    RegistryKind("pose_estimators", "pose estimator", PoseEstimatorSpec, "omnire_register_pose_estimators"),
+    RegistryKind("scene_writers", "scene writer", SceneWriterSpec, "omnire_register_scene_writers"),
+)
+"""Every registry kind, in the order ``omnire plugins`` lists them."""

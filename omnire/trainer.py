@@ -140,8 +140,7 @@ class Trainer:
         return min(3, self.step // max(1, self.config.method.sh_degree_interval))
 
     def target(self, view: View) -> torch.Tensor:
-        cam = self.scene.cameras[view.camera]
-        return self.images.get(cam.image_paths[view.frame], cam.width, cam.height).to(self.device)
+        return self.images.camera_image(self.scene.cameras[view.camera], view.frame).to(self.device)
 
     # ------------------------------------------------------------------ training
     def loss_context(self, view: View, result) -> LossContext:

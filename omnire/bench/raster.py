@@ -206,17 +206,14 @@ def write_json_atomic(path: Path, data) -> None:
         raise
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: list[str], plugins) -> int:
     import torch
     from rich.console import Console
     from rich.table import Table
 
-    from omnire.plugins import load_plugins
-
-    args = tyro.cli(BenchArgs, args=list(sys.argv[1:] if argv is None else argv), prog="omnire bench raster")
+    args = tyro.cli(BenchArgs, args=argv, prog="omnire bench raster")
     console = Console()
     threads = args.threads or torch.get_num_threads()
-    plugins = load_plugins()
     device = torch.device(args.device)
     names = list(args.rasterizers) or plugins.rasterizers.names()
     chosen = []

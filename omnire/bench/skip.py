@@ -74,14 +74,11 @@ def _time_steps(trainers: list, views: list[list], warmup: int, steps: int) -> l
     return [statistics.median(ts) * 1000 for ts in times]
 
 
-def main(argv: list[str]) -> int:
+def main(argv: list[str], plugins) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from omnire.plugins import load_plugins
-
     args = tyro.cli(SkipBenchArgs, args=argv, prog="omnire bench skip")
-    plugins = load_plugins()
     cfg = plugins.dataparsers.get("pandaset").config_factory()
     cfg.data, cfg.scale = args.data, args.scale
     scene = cfg.setup().parse().validate()

@@ -222,10 +222,8 @@ def plot(results: list[dict], path: Path) -> None:
     os.replace(tmp, path)
 
 
-def main(argv: list[str]) -> int:
+def main(argv: list[str], plugins) -> int:
     from rich.console import Console
-
-    from omnire.plugins import load_plugins
 
     args = tyro.cli(TrainBenchArgs, args=argv, prog="omnire bench train")
     console = Console()
@@ -238,7 +236,7 @@ def main(argv: list[str]) -> int:
         kept = {k: type(getattr(args, k))(v) for k, v in saved["args"].items()
                 if k in ("data", "dataparser", "dataparser_args", "steps", "seconds")}
         return _report(dataclasses.replace(args, **kept), saved["results"], console)
-    methods = list(args.methods) or load_plugins().methods.names()
+    methods = list(args.methods) or plugins.methods.names()
     try:
         labels = [parse_entry(m)[0] for m in methods]
     except ValueError as e:

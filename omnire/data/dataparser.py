@@ -4,6 +4,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import numpy as np
+
 from omnire.config import InstantiateConfig
 from omnire.data.scene import SceneData
 
@@ -28,3 +30,44 @@ class Dataparser:
 
     def parse(self) -> SceneData:
         raise NotImplementedError
+
+
+def frame_range(start: int, end: int, total: int, source: str) -> range:
+    """Frames ``start`` .. ``end`` - 1 of a log with ``total`` frames (``end`` = -1: to the
+    end). Raises :class:`~omnire.errors.ConfigError` naming ``source`` for an empty or
+    out-of-range selection."""
+    from omnire.errors import ConfigError
+
+    stop = total if end < 0 else end
+    if not 0 <= start < stop <= total:
+        raise ConfigError(f"{source}: frames {start}..{end} (--start-frame/--end-frame) select nothing of the "
+                          f"{total} frames of the log (valid: 0 <= start < end <= {total}, end -1 = to the end)")
+    return range(start, stop)
+
+
+def first_pose_world(ego_to_source: np.ndarray) -> np.ndarray:
+    """(4, 4) transform from a dataset's world frame to the omnire world: origin at the ego
+    pose ``ego_to_source`` (4, 4) (the first loaded one), x along its heading projected on
+    the ground, z kept up (the ego's roll and pitch are not undone, DESIGN.md section 3)."""
+    from omnire.geometry import rot_z
+
+    forward = ego_to_source[:3, 0]
+    yaw = float(np.arctan2(forward[1], forward[0]))
+    world_to_source = np.eye(4)
+    world_to_source[:3, :3] = rot_z(np.array(yaw))
+    world_to_source[:3, 3] = ego_to_source[:3, 3]
+    return np.linalg.inv(world_to_source)
+
+
+@dataclasses.dataclass
+class LogDataparserConfig(DataparserConfig):
+    """Fields of readers of a recorded log: camera and frame selection, LiDAR on/off."""
+
+    cameras: tuple[str, ...] = ()
+    """Cameras to load by the dataset's names (empty: the reader's default set)."""
+    start_frame: int = 0
+    """First frame of the log to load (0-based)."""
+    end_frame: int = -1
+    """One past the last frame to load; -1 loads to the end of the log."""
+    load_lidar: bool = True
+    """Load LiDAR (used for initialisation and the depth loss)."""

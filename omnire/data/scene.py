@@ -16,11 +16,13 @@ from typing import Optional
 
 import numpy as np
 
+from omnire.errors import UserError
+
 CATEGORIES = ("vehicle", "human", "cyclist", "other")
 """Actor categories dataparsers map their class names to. Node types declare which they take."""
 
 
-class SceneDataError(ValueError):
+class SceneDataError(UserError):
     """A dataparser produced, or was given, inconsistent data. The message names the field."""
 
 
@@ -37,6 +39,14 @@ class CameraSequence:
         timestamps: (F,) seconds.
         sky_mask_paths: optional F mask files (non-zero = sky).
         dynamic_mask_paths: optional ``{"human"|"vehicle"|"all": F files}`` (non-zero = actor).
+        distortion: optional (5,) OpenCV lens distortion ``k1 k2 p1 p2 k3`` of the images on
+            disk (coefficients of normalised coordinates, so independent of the resolution).
+            Images and masks are undistorted to the pinhole ``intrinsics`` when loaded.
+        ego_mask_path: optional image (any resolution) whose non-zero pixels show the
+            recording vehicle itself in this camera; they are left out of every loss,
+            densification statistic and metric.
+        extras: dataset-specific per-camera fields kept with the scene (e.g. rolling-shutter
+            parameters), name -> array with F rows; the core does not use them.
     """
 
     name: str
@@ -48,6 +58,9 @@ class CameraSequence:
     timestamps: np.ndarray
     sky_mask_paths: Optional[list[Path]] = None
     dynamic_mask_paths: Optional[dict[str, list[Path]]] = None
+    distortion: Optional[np.ndarray] = None
+    ego_mask_path: Optional[Path] = None
+    extras: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
     @property
     def num_frames(self) -> int:
@@ -83,6 +96,8 @@ class ActorTrack:
         size: (3,) length, width, height in metres (max over frames when the dataset varies).
         present: (F,) bool, True where the actor is annotated in that frame.
         stationary: True when the dataset says (or motion shows) the actor never moves.
+        extras: dataset-specific per-track fields kept with the scene (e.g. camera-synced
+            boxes), name -> array or value; the core does not use them.
     """
 
     track_id: str
@@ -92,6 +107,7 @@ class ActorTrack:
     size: np.ndarray
     present: np.ndarray
     stationary: bool = False
+    extras: dict = dataclasses.field(default_factory=dict)
 
     def frames(self) -> np.ndarray:
         return np.flatnonzero(self.present)
@@ -199,6 +215,11 @@ class SceneData:
                 raise SceneDataError(f"{where}.image_paths: {len(cam.image_paths)} entries, expected {F}")
             if cam.width <= 0 or cam.height <= 0:
                 raise SceneDataError(f"{where}: image size {cam.width}x{cam.height} must be positive")
+            if cam.distortion is not None:
+                _check_shape(np.asarray(cam.distortion), (5,), f"{where}.distortion (k1 k2 p1 p2 k3)")
+            for key, value in cam.extras.items():
+                if len(value) != F:
+                    raise SceneDataError(f"{where}.extras[{key!r}]: {len(value)} rows, expected {F}")
             for mask_list, label in [(cam.sky_mask_paths, "sky_mask_paths")] + [
                 (v, f"dynamic_mask_paths[{k!r}]") for k, v in (cam.dynamic_mask_paths or {}).items()
             ]:

@@ -24,10 +24,47 @@ class SynthCommand:
     """Generator options."""
     tiny: bool = False
     """Test size: 8 frames at 72x48 (overrides --frames, --width, --height)."""
+    format: str = "processed"
+    """On-disk layout: processed (the reference implementation's), or a dataset's own layout
+    from a registered scene writer (``omnire plugins`` lists them, e.g. waymo, nuscenes)."""
 
 
-def main(argv: list[str]) -> int:
+def main(argv: list[str], plugins=None) -> int:
     cmd = tyro.cli(SynthCommand, args=argv, prog="omnire synth")
+    if cmd.format != "processed":
+        if plugins is None:
+            from omnire.plugins import load_plugins
+
+            plugins = load_plugins()
+        writer = plugins.scene_writers.get(cmd.format)  # unknown format: RegistryError naming the known ones
+        return _generate_and_convert(cmd, writer)
+    return _generate(cmd, cmd.out)
+
+
+def _generate_and_convert(cmd: SynthCommand, writer) -> int:
+    """Generate in the processed layout in a temporary folder beside ``cmd.out``, then let
+    ``writer`` write the dataset's own layout into ``cmd.out`` (new or empty)."""
+    import shutil
+    import tempfile
+
+    out = Path(cmd.out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        from omnire.errors import UserError
+
+        raise UserError(f"{out}: exists and is not an empty folder; {cmd.format} scenes are written into a new one")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".synth-", dir=out.parent) as tmp:
+        code = _generate(cmd, Path(tmp) / "processed")
+        staging = Path(tmp) / "converted"
+        staging.mkdir()
+        writer.write(Path(tmp) / "processed", staging)
+        if out.exists():
+            out.rmdir()
+        shutil.move(str(staging), str(out))  # same file system: a rename, never a half-written scene
+    return code
+
+
+def _generate(cmd: SynthCommand, out: Path) -> int:
     opts = cmd.options
     if cmd.tiny:
         opts = dataclasses.replace(opts, frames=8, width=72, height=48)
@@ -37,8 +74,8 @@ def main(argv: list[str]) -> int:
     console = Console()
     with Progress(TextColumn("[bold]synth[/] {task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console) as bar:
-        task = bar.add_task(f"{cmd.preset} -> {cmd.out}", total=opts.frames)
-        summary = generate(cmd.out, cmd.preset, opts, progress=lambda done, total: bar.update(task, completed=done))
+        task = bar.add_task(f"{cmd.preset} -> {out}", total=opts.frames)
+        summary = generate(out, cmd.preset, opts, progress=lambda done, total: bar.update(task, completed=done))
     sec = summary["seconds"]
     console.print(
         f"wrote {summary['frames']} frames x {summary['cameras']} cameras ({summary['size'][0]}x{summary['size'][1]}), "

@@ -12,10 +12,9 @@ def _config():
 
 
 def _synth_main(argv: list[str], plugins=None) -> int:
-    # The core CLI may pass the loaded plugins as a second argument; synth does not need them.
     from omnire_synthetic.cli import main
 
-    return main(argv)
+    return main(argv, plugins)
 
 
 @hookimpl

@@ -1,0 +1,98 @@
+"""Interpolation along a log: the one helper behind box poses, body poses, ego and camera
+paths at times between (or frames other than) the observed ones.
+
+A query is bracketed by two known samples (:func:`bracket`); rotations are SLERPed and
+translations interpolated linearly between them (:func:`interpolate_poses`). Outside the
+known range the nearest sample is held. Works on numpy arrays (readers, scene preparation)
+and torch tensors (nodes) alike.
+"""
+from __future__ import annotations
+
+from typing import Union
+
+import numpy as np
+import torch
+
+from omnire.geometry import slerp_rotmats
+
+Array = Union[np.ndarray, torch.Tensor]
+
+
+def bracket(known: np.ndarray, query: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For increasing ``known`` (K,) positions (times or frame indices) and ``query`` (Q,)
+    (or a scalar), the indices (Q,) of the enclosing known samples and the weight (Q,) of the
+    second: value(q) = (1 - w) value[i0] + w value[i1]. A query equal to a known position
+    gives i0 = i1 and w = 0 exactly; outside the range the nearest sample is held."""
+    known = np.asarray(known, dtype=np.float64)
+    q = np.atleast_1d(np.asarray(query, dtype=np.float64))
+    if known.ndim != 1 or len(known) == 0:
+        raise ValueError(f"bracket: known positions must be a non-empty 1-D array, got shape {known.shape}")
+    if len(known) > 1 and not np.all(np.diff(known) > 0):
+        raise ValueError("bracket: known positions must be strictly increasing")
+    i1 = np.searchsorted(known, q, side="left").clip(0, len(known) - 1)
+    i0 = np.where(known[i1] > q, np.maximum(i1 - 1, 0), i1)
+    span = known[i1] - known[i0]
+    w = np.where(span > 0, (q - known[i0]) / np.where(span > 0, span, 1.0), 0.0)
+    w = np.where(q <= known[0], 0.0, np.where(q >= known[-1], 0.0, w))
+    i1 = np.where(w == 0, i0, i1)
+    return i0, i1, w
+
+
+def interpolate_rotations(R: Array, i0, i1, w) -> Array:
+    """SLERP of rotations ``R`` (K, ..., 3, 3) between rows i0 (Q,) and i1 (Q,) with weights w
+    (Q,): (Q, ..., 3, 3). Rows with w = 0 are returned exactly."""
+    R0, R1 = R[i0], R[i1]
+    if isinstance(R, np.ndarray):
+        w = np.asarray(w, dtype=np.float64)
+        wb = np.broadcast_to(w.reshape((-1,) + (1,) * (R0.ndim - 3)), R0.shape[:-2])
+        out = R0.copy()
+        mix = wb > 0
+        if mix.any():
+            out[mix] = slerp_rotmats(R0[mix], R1[mix], np.ascontiguousarray(wb[mix]))
+        return out
+    w = torch.as_tensor(w, dtype=R.dtype, device=R.device)
+    wb = w.reshape((-1,) + (1,) * (R0.ndim - 3)).expand(R0.shape[:-2])
+    mix = wb > 0
+    if not bool(mix.any()):
+        return R0
+    return R0.index_put(torch.nonzero(mix, as_tuple=True), slerp_rotmats(R0[mix], R1[mix], wb[mix]))
+
+
+def interpolate_vectors(x: Array, i0, i1, w) -> Array:
+    """Linear interpolation of ``x`` (K, ...) between rows i0 and i1 with weights w (Q,)."""
+    if isinstance(x, np.ndarray):
+        wb = np.asarray(w, dtype=np.float64).reshape((-1,) + (1,) * (x.ndim - 1))
+        return x[i0] * (1 - wb) + x[i1] * wb
+    wb = torch.as_tensor(w, dtype=x.dtype, device=x.device).reshape((-1,) + (1,) * (x.ndim - 1))
+    return x[i0] * (1 - wb) + x[i1] * wb
+
+
+def interpolate_poses(known: np.ndarray, poses: np.ndarray, query: np.ndarray | float) -> np.ndarray:
+    """Rigid poses (K, 4, 4) at increasing positions ``known`` (K,) -> poses (Q, 4, 4) at
+    ``query``: rotations SLERPed, translations linear, the nearest held outside the range.
+    Known positions are returned exactly."""
+    poses = np.asarray(poses, dtype=np.float64)
+    i0, i1, w = bracket(known, query)
+    out = np.tile(np.eye(4), (len(i0), 1, 1))
+    out[:, :3, :3] = interpolate_rotations(poses[:, :3, :3], i0, i1, w)
+    out[:, :3, 3] = interpolate_vectors(poses[:, :3, 3], i0, i1, w)
+    return out
+
+
+def interpolate_track(times: np.ndarray, poses: np.ndarray, present: np.ndarray, query: np.ndarray,
+                      max_gap: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """An annotated track resampled at ``query`` times (Q,): poses (K, 4, 4) at ``times``
+    (K,), valid where ``present`` (K,). A query inside the annotated span whose enclosing
+    annotations are at most ``max_gap`` apart is interpolated; others are absent. Returns
+    (poses (Q, 4, 4), present (Q,) bool)."""
+    times = np.asarray(times, dtype=np.float64)
+    query = np.asarray(query, dtype=np.float64)
+    keep = np.asarray(present, bool)
+    out = np.tile(np.eye(4), (len(query), 1, 1))
+    if keep.sum() == 0:
+        return out, np.zeros(len(query), bool)
+    t, P = times[keep], np.asarray(poses, dtype=np.float64)[keep]
+    i0, i1, w = bracket(t, query)
+    inside = (query >= t[0]) & (query <= t[-1]) & ((t[i1] - t[i0]) <= max_gap)
+    out[inside] = interpolate_poses(t, P, query[inside])
+    return out, inside
