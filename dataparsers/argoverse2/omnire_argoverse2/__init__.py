@@ -1,0 +1,1 @@
+"""Argoverse 2 sensor logs for omnire: the ``argoverse2`` dataparser and scene writer."""
