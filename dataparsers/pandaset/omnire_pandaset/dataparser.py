@@ -19,6 +19,8 @@ Conventions verified on sequence 002 (see the tests and the package README):
   along the ego heading and z stays exactly up (the sensor's small roll/pitch is not undone).
 - Camera poses are OpenCV camera-to-world already (p_cam = R^T (p_world - t) projects box
   centres onto the cars), so only the world change is applied.
+- Intrinsics centre pixel (i, j) at (i + 0.5, j + 0.5), like omnire (pandaset-devkit's
+  ``geometry.projection`` treats the image as 0 < u < width, 0 < v < height): used as is.
 - Cuboid ``yaw`` rotates a box frame whose x axis is the *width* (dimensions.x) and y axis
   the length (dimensions.y): moving objects travel along yaw + 90 degrees (median error
   under 0.5 degrees on 002). omnire boxes put x along the heading, so the box rotation is
@@ -438,8 +440,9 @@ class PandasetDataparser(Dataparser):
             raise FileNotFoundError(f"{missing[0]}: missing image of camera {name}{more}")
         width, height = _image_size(paths[0])
         # Loaded size: files scaled by `scale`, rounded; K scaled per axis by the exact ratio.
-        # PandaSet does not state a pixel-centre convention; K is taken as continuous image
-        # coordinates (pixel centres at +0.5), so resizing is a plain multiplication.
+        # PandaSet's K maps to continuous image coordinates with pixel centres at +0.5 (its
+        # devkit's projection keeps 0 < u < width, 0 < v < height), omnire's convention: no
+        # shift, and resizing is a plain multiplication (the processed reader agrees).
         w_out, h_out = max(1, round(width * self.config.scale)), max(1, round(height * self.config.scale))
         sx, sy = w_out / width, h_out / height
         K = np.array([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]])

@@ -1,5 +1,6 @@
 """Facts about the reference implementation's processed-scene format (DESIGN.md section 5):
-per-dataset camera ids, LiDAR column layouts, camera-axis conventions and class names.
+per-dataset camera ids, LiDAR column layouts, camera-axis, pixel-centre and box-axis
+conventions, and class names.
 """
 from __future__ import annotations
 
@@ -23,6 +24,46 @@ CAMERA_NAMES: dict[str, tuple[str, ...]] = {
                   "ring_rear_left", "ring_rear_right"),
     "kitti": ("CAM_LEFT", "CAM_RIGHT"),
     "nuplan": ("CAM_F0", "CAM_L0", "CAM_R0", "CAM_L1", "CAM_R1", "CAM_L2", "CAM_R2", "CAM_B0"),
+}
+
+
+# Pixel-centre convention of the intrinsics each source's preprocessing copies unchanged into
+# intrinsics/{cam}.txt (the reference's savers write the dataset's own fx fy cx cy). "half":
+# pixel (i, j) is centred at (i + 0.5, j + 0.5), i.e. the image spans [0, W] x [0, H], which is
+# omnire's convention (used as is); "integer": centred at (i, j) as in OpenCV (+0.5 added).
+# Evidence, from each dataset's own tools:
+# - waymo: camera_model.cc (waymo-open-dataset) accepts 0 <= u < width as in the image and
+#   times the rolling-shutter readout from image coordinate 0 to width/height.
+# - pandaset: pandaset-devkit geometry.projection keeps points with 0 < u < width, 0 < v < height.
+# - nuscenes: nuscenes-devkit box_in_image keeps corners with 0 < u < width, and its 2D-box
+#   export clips projected boxes to the canvas box(0, 0, 1600, 900).
+# - argoverse: av2-api PinholeCamera.cull_to_view_frustum documents image coordinates in
+#   [0, W-1] x [0, H-1] (first and last pixel centres at 0 and W-1).
+# - kitti: the devkit's label format gives 2D boxes as "0-based index" pixel coordinates.
+# - nuplan: no statement in nuplan-devkit; its cameras ship OpenCV's distortion model
+#   (k1 k2 p1 p2 k3) for distorted images, so OpenCV's convention is assumed.
+PIXEL_CENTRES: dict[str, str] = {
+    "waymo": "half", "pandaset": "half", "nuscenes": "half",
+    "argoverse": "integer", "kitti": "integer", "nuplan": "integer",
+}
+
+# Which local axis of the reference's obj_to_world boxes points along the object's heading,
+# per source (box_size always lists the extents along local x, y, z). From
+# ziyc/drivestudio datasets/*/*_preprocess.py save_objects:
+# - waymo: vehicle_to_world @ Rz(box.heading) at the box centre; heading rotates +x to the
+#   front face normal; box_size = (length, width, height).
+# - nuscenes: the annotation quaternion (nuScenes Box: x along the length) at its
+#   translation; box_size = (l, w, h) converted from nuScenes' (w, l, h).
+# - argoverse: city_SE3_ego @ ego_SE3_object (AV2 cuboids: length along object x);
+#   box_size = (length_m, width_m, height_m).
+# - kitti: velo_to_world @ Rz(tracklet rz) with the tracklet's bottom centre raised by h/2;
+#   box_size = (l, w, h) from the tracklet's (h, w, l).
+# - nuplan: the SE2 pose (x, y, yaw) of the lidar_box with its z; box_size = (l, w, h).
+# - pandaset: Rz(cuboid yaw) at the cuboid position; box_size = (dimensions.x, .y, .z).
+#   PandaSet's dimensions.x is the width and yaw rotates that width axis: the object moves
+#   along local +y, so box_size = (width, length, height).
+BOX_HEADING_AXIS: dict[str, str] = {
+    "waymo": "+x", "nuscenes": "+x", "argoverse": "+x", "kitti": "+x", "nuplan": "+x", "pandaset": "+y",
 }
 
 

@@ -11,11 +11,26 @@ Conversions to omnire's conventions (DESIGN.md section 3):
 - Cameras: per-camera ``extrinsics/{cam}.txt`` are camera->ego (Waymo camera axes are
   converted by right-multiplying ``WAYMO_TO_OPENCV``); per-frame
   ``extrinsics/{t:03d}_{cam}.txt`` are camera->world in OpenCV axes (nuScenes, PandaSet).
-- Intrinsics: 9 numbers ``fx fy cx cy k1 k2 p1 p2 k3`` in the OpenCV pixel convention at the
-  image files' resolution; scaled to the loaded size and shifted by +0.5 px (our pixel
-  centres are at +0.5). Distortion is ignored (reported once if non-zero).
+- Intrinsics: 9 numbers ``fx fy cx cy k1 k2 p1 p2 k3`` at the image files' resolution, the
+  dataset's own values (the reference copies them unchanged), so in the dataset's pixel-centre
+  convention (``formats.PIXEL_CENTRES``, with the evidence): Waymo, PandaSet and nuScenes
+  centre pixel (i, j) at (i + 0.5, j + 0.5) like omnire, used as is; Argoverse2, KITTI and
+  NuPlan (and ``file_pixel_centres=integer``) centre it at (i, j) as OpenCV does, so +0.5 px
+  is added to cx, cy. Then K is scaled to the loaded size (continuous coordinates scale by
+  plain multiplication). Distortion is ignored (reported once if non-zero).
 - LiDAR: columns per dataset (``formats.LIDAR_LAYOUTS``), points posed by the frame's ego
   (or LiDAR) pose.
+- Boxes: ``obj_to_world`` is box-to-world at the box centre and ``box_size`` the extents
+  along the box's local x, y, z. The reference writes local x along the heading with
+  box_size = (length, width, height) for Waymo, nuScenes, Argoverse2, KITTI and NuPlan, but
+  keeps PandaSet's own box frame, whose local +y is the heading (box_size = (width, length,
+  height)); see ``formats.BOX_HEADING_AXIS`` for what each preprocessing writes. The file does
+  not say which, so with ``box_heading_axis=auto`` the reader checks it
+  (``boxes.detect_heading_axis``: the direction moving boxes travel in, in their own frame,
+  and which horizontal extent of vehicle boxes is the longer), falls back to the source's
+  convention with a warning when the file is ambiguous, and warns when the file contradicts
+  it. Boxes are then turned about their z axis so that x is the heading and the size is
+  (length, width, height).
 - SMPL: ``global_orient`` given in the OpenCV frame of camera ``selected_cam_idx[t]`` is
   turned into body-to-world with that camera's converted camera->world rotation.
 
@@ -45,7 +60,7 @@ from omnire.data.scene import (
     SceneDataError,
     holdout_split,
 )
-from omnire_processed import formats
+from omnire_processed import boxes, formats
 from omnire_processed.formats import LIDAR_LAYOUTS, WAYMO_TO_OPENCV, category_of
 
 Source = Literal["auto", "waymo", "nuscenes", "nuplan", "argoverse", "pandaset", "kitti"]
@@ -130,7 +145,11 @@ class ProcessedDataparserConfig(DataparserConfig):
     up_axis: Literal["auto", "ego"] = "auto"
     """auto: if the cameras' mean up is over 30 deg from +z, turn the nearest ego axis up; ego: trust the ego frame."""
     stationary_threshold: float = 0.5
-    """Tracks whose box centre moves less than this (metres) over the loaded frames are stationary."""
+    """Tracks whose box centre moves less than this (metres) over the loaded frames are stationary (unless the file flags them)."""
+    file_pixel_centres: Literal["auto", "half", "integer"] = "auto"
+    """Pixel-centre convention of intrinsics/: auto by source; half: pixel (i, j) centred at (i+0.5, j+0.5) (used as is); integer: at (i, j) as in OpenCV (+0.5 added)."""
+    box_heading_axis: Literal["auto", "+x", "+y", "-x", "-y"] = "auto"
+    """Local axis of the file's boxes that points along the heading; auto checks the boxes' motion and shapes."""
 
 
 class ProcessedDataparser(Dataparser):
@@ -142,6 +161,8 @@ class ProcessedDataparser(Dataparser):
         super().__init__(config)
         self.source: Optional[str] = None
         self.world_from_file: Optional[np.ndarray] = None
+        self.heading_axis: Optional[boxes.HeadingAxis] = None
+        self.pixel_centres: Optional[str] = None
         self.notes: list[str] = []
 
     # ------------------------------------------------------------------ layout
@@ -303,7 +324,10 @@ class ProcessedDataparser(Dataparser):
         w0, h0 = _image_size(images[0])
         W, H = max(1, round(w0 * self.config.scale)), max(1, round(h0 * self.config.scale))
         sx, sy = W / w0, H / h0
-        K = np.array([[fx * sx, 0.0, (cx + 0.5) * sx], [0.0, fy * sy, (cy + 0.5) * sy], [0.0, 0.0, 1.0]])
+        centres = self.config.file_pixel_centres
+        self.pixel_centres = formats.PIXEL_CENTRES[source] if centres == "auto" else centres
+        shift = 0.5 if self.pixel_centres == "integer" else 0.0  # to continuous coordinates at file size
+        K = np.array([[fx * sx, 0.0, (cx + shift) * sx], [0.0, fy * sy, (cy + shift) * sy], [0.0, 0.0, 1.0]])
         names = formats.CAMERA_NAMES.get(source, ())
         name = names[cam] if cam < len(names) else f"camera_{cam}"
         sky = self._mask_paths(root / "sky_masks", cam, frames)
@@ -391,9 +415,11 @@ class ProcessedDataparser(Dataparser):
             info = json.loads(path.read_text())
         except ValueError as exc:
             raise ProcessedSceneError(f"{path}: invalid JSON ({exc})") from None
-        F = len(frames)
-        local = {int(t): i for i, t in enumerate(frames)}
-        tracks, key_to_track, unknown = [], {}, set()
+        if not isinstance(info, dict):
+            raise ProcessedSceneError(f"{path}: expected an object of instances, got {type(info).__name__}")
+        # Pass 1: every instance over the whole log, as written (the heading axis is a
+        # property of the file, decided from all of it whatever range is loaded).
+        parsed, unknown = [], set()
         for key, inst in info.items():
             where = f"{path}: instance {key!r}"
             try:
@@ -409,36 +435,57 @@ class ProcessedDataparser(Dataparser):
                 raise ProcessedSceneError(
                     f"{where}: frame_idx {bad[:5]} outside the log (0..{n_full - 1}, from ego_pose/)"
                 )
-            poses = np.tile(np.eye(4), (F, 1, 1))
-            present = np.zeros(F, bool)
-            size = np.zeros(3)
-            for t, m, s in zip(fidx, o2w, sizes):
-                i = local.get(int(t))
-                if i is None:
-                    continue
-                m = np.asarray(m, dtype=np.float64)
-                if m.size != 16 or len(s) != 3:
-                    raise ProcessedSceneError(f"{where}: frame {t}: obj_to_world must be 4x4 and box_size 3 numbers")
-                poses[i] = align @ m.reshape(4, 4)
-                present[i] = True
-                size = np.maximum(size, np.asarray(s, dtype=np.float64))
-            if not present.any():
-                continue
+            try:
+                o2w = np.asarray(o2w, dtype=np.float64).reshape(len(fidx), 4, 4)
+                sizes = np.asarray(sizes, dtype=np.float64).reshape(len(fidx), 3)
+            except ValueError:
+                raise ProcessedSceneError(
+                    f"{where}: obj_to_world must be 4x4 matrices and box_size 3 numbers per frame"
+                ) from None
+            if not (np.isfinite(o2w).all() and np.isfinite(sizes).all()):
+                raise ProcessedSceneError(f"{where}: obj_to_world or box_size holds NaN or inf")
+            fidx = np.asarray(fidx, dtype=np.int64)
+            order = np.argsort(fidx, kind="stable")
             category = category_of(class_name, source)
             if category is None:
                 unknown.add(class_name)
                 category = "other"
-            centres = poses[present, :3, 3]
-            # Net motion between the medians of the first and last thirds: robust to per-frame
-            # box jitter, which would make parked cars look as if they moved.
-            k = max(1, len(centres) // 3)
-            moved = float(np.linalg.norm(np.median(centres[-k:], 0) - np.median(centres[:k], 0)))
-            track_id = str(inst.get("id", key))
-            tracks.append(ActorTrack(track_id, class_name, category, poses, size, present,
-                                     stationary=moved < self.config.stationary_threshold))
-            key_to_track[str(key)] = track_id
+            flags = ann.get("stationary")
+            flags = np.asarray(flags, dtype=bool)[order] if flags is not None and len(flags) == len(fidx) else None
+            parsed.append((key, inst, class_name, category, fidx[order], o2w[order], sizes[order], flags))
         if unknown:
             self.notes.append(f"unknown class names {sorted(unknown)} mapped to category 'other'")
+        k = self._heading_axis(parsed, source, path)
+
+        # Pass 2: the loaded frames, in the world, x along the heading.
+        fix = np.eye(4)
+        fix[:3, :3] = boxes.axis_fix(k)
+        F = len(frames)
+        local = np.full(n_full, -1)
+        local[frames] = np.arange(F)
+        tracks, key_to_track = [], {}
+        for key, inst, class_name, category, fidx, o2w, sizes, flags in parsed:
+            i = local[fidx]
+            sel = i >= 0
+            if not sel.any():
+                continue
+            poses = np.tile(np.eye(4), (F, 1, 1))
+            present = np.zeros(F, bool)
+            poses[i[sel]] = align @ o2w[sel] @ fix
+            present[i[sel]] = True
+            size = boxes.size_fix(sizes[sel], k).max(0)
+            if flags is not None:  # the dataset's own per-frame flag (PandaSet)
+                stationary = bool(flags[sel].all())
+            else:
+                centres = poses[present, :3, 3]
+                # Net motion between the medians of the first and last thirds: robust to
+                # per-frame box jitter, which would make parked cars look as if they moved.
+                n3 = max(1, len(centres) // 3)
+                moved = float(np.linalg.norm(np.median(centres[-n3:], 0) - np.median(centres[:n3], 0)))
+                stationary = moved < self.config.stationary_threshold
+            track_id = str(inst.get("id", key))
+            tracks.append(ActorTrack(track_id, class_name, category, poses, size, present, stationary=stationary))
+            key_to_track[str(key)] = track_id
         fi_path = root / "instances" / "frame_instances.json"
         if fi_path.is_file():
             try:
@@ -452,6 +499,22 @@ class ProcessedDataparser(Dataparser):
                 if missing:
                     raise ProcessedSceneError(f"{fi_path}: frame {t} lists instances {missing[:5]} not in instances_info.json")
         return tracks, key_to_track
+
+    def _heading_axis(self, parsed: list, source: str, path: Path) -> int:
+        """Index k (``boxes.AXES``) of the local axis of the file's boxes along the heading."""
+        if self.config.box_heading_axis != "auto":
+            self.heading_axis = boxes.HeadingAxis(boxes.AXES.index(self.config.box_heading_axis), "configured",
+                                                  np.zeros(4), np.zeros(2))
+            return self.heading_axis.k
+        if not parsed:
+            self.heading_axis = None
+            return boxes.AXES.index(formats.BOX_HEADING_AXIS[source])
+        found = boxes.detect_heading_axis([(p[4], p[5], p[6], p[3]) for p in parsed],
+                                          formats.BOX_HEADING_AXIS[source], source)
+        self.heading_axis = found
+        if found.warning:
+            self.notes.append(f"{path.name}: {found.warning}")
+        return found.k
 
     # ------------------------------------------------------------------ humans
     def _human_poses(self, root: Path, n_full: int, frames: np.ndarray, align: np.ndarray, source: str,

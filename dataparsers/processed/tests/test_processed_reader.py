@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import pickle
 import shutil
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,15 @@ import pytest
 from omnire.data.scene import CATEGORIES, SceneDataError
 import omnire_processed.plugin as processed_plugin
 from omnire.plugins import load_plugins
-from omnire_processed.formats import CLASS_CATEGORIES, SOURCES, category_of, detect_source_from_classes
+from omnire_processed import boxes
+from omnire_processed.formats import (
+    BOX_HEADING_AXIS,
+    CLASS_CATEGORIES,
+    PIXEL_CENTRES,
+    SOURCES,
+    category_of,
+    detect_source_from_classes,
+)
 from omnire_processed.pickles import load_smpl_pickle
 from omnire_processed.reader import ProcessedSceneError
 from omnire_synthetic.generate import SynthOptions, generate
@@ -166,7 +175,8 @@ def test_nuscenes_y_down_world_converted_to_z_up(scenes):
             p = np.linalg.inv(c2w_file) @ np.append(X_file, 1.0)
             if p[2] < 1.0:
                 continue
-            uv_file = np.array([K_file[0] * p[0] / p[2] + K_file[2], K_file[1] * p[1] / p[2] + K_file[3]]) + 0.5
+            # nuScenes intrinsics centre pixels at +0.5 already (formats.PIXEL_CENTRES): no shift.
+            uv_file = np.array([K_file[0] * p[0] / p[2] + K_file[2], K_file[1] * p[1] / p[2] + K_file[3]])
             X_ours = parser.world_from_file @ np.append(X_file, 1.0)
             cam = scene.cameras[0]
             uv_ours, z = project(cam.intrinsics, cam.cam_to_world[t], X_ours[None, :3])
@@ -311,3 +321,144 @@ def test_ego_frame_not_z_up_is_turned_up(scenes, tmp_path):
     np.testing.assert_allclose(np.linalg.norm(pa - a.lidar.origins[3], axis=1),
                                np.linalg.norm(pb - b.lidar.origins[3], axis=1), atol=1e-3)
     np.testing.assert_allclose(pa[:, 2] - a.lidar.origins[3, 2], pb[:, 2] - b.lidar.origins[3, 2], atol=2e-2)
+
+
+# ---------------------------------------------------------------------------- box axes, pixel centres
+def _rewrite_boxes(path: Path, fn) -> None:
+    """Apply fn(obj_to_world (n, 4, 4), box_size (n, 3)) -> (obj_to_world, box_size) to every instance."""
+    info_path = path / "instances" / "instances_info.json"
+    info = json.loads(info_path.read_text())
+    for inst in info.values():
+        ann = inst["frame_annotations"]
+        if not ann["frame_idx"]:
+            continue
+        o2w, size = fn(np.asarray(ann["obj_to_world"]), np.asarray(ann["box_size"]))
+        ann["obj_to_world"], ann["box_size"] = o2w.tolist(), size.tolist()
+    info_path.write_text(json.dumps(info))
+
+
+def _to_x_along(o2w, size):
+    """PandaSet-style file boxes (+y = heading, (w, l, h)) -> x along the heading, (l, w, h)."""
+    return o2w @ _fix4(1), size[:, [1, 0, 2]]
+
+
+def _frozen(o2w, size):
+    return np.repeat(o2w[:1], len(o2w), 0), size
+
+
+def _fix4(k):
+    m = np.eye(4)
+    m[:3, :3] = boxes.axis_fix(k)
+    return m
+
+
+def _read_warned(path: Path, **overrides):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene, parser = read(path, **overrides)
+    return scene, parser, [str(w.message) for w in caught if "box" in str(w.message)]
+
+
+def test_pandaset_style_boxes_are_turned_to_x_along_heading(scenes):
+    """The generator writes PandaSet-style boxes as the reference does (local +y = heading);
+    motion finds that and the reader turns them (the round trip test checks the poses)."""
+    info = json.loads((scenes["pandaset"] / "instances" / "instances_info.json").read_text())
+    car = next(v for v in info.values() if v["class_name"] == "Car" and v["frame_annotations"]["frame_idx"])
+    w, l, _ = car["frame_annotations"]["box_size"][0]
+    assert l > 1.5 * w  # the file lists (width, length, height)
+    scene, parser, box_warnings = _read_warned(scenes["pandaset"])
+    assert parser.heading_axis.axis == "+y" and parser.heading_axis.reason.startswith("motion")
+    assert box_warnings == []
+    for style in ("waymo", "nuscenes"):
+        _, parser, box_warnings = _read_warned(scenes[style])
+        assert parser.heading_axis.axis == "+x" and box_warnings == []
+
+
+def test_box_axes_from_motion_override_the_source_convention(scenes, tmp_path):
+    dst = tmp_path / "x_along"
+    shutil.copytree(scenes["pandaset"], dst)
+    _rewrite_boxes(dst, _to_x_along)  # a PandaSet scene written by another tool
+    a, _ = read(scenes["pandaset"])
+    b, parser, box_warnings = _read_warned(dst)
+    assert parser.source == "pandaset" and parser.heading_axis.axis == "+x"
+    assert len(box_warnings) == 1 and "move along local +x" in box_warnings[0] and "pandaset" in box_warnings[0]
+    for ta, tb in zip(a.tracks, b.tracks):
+        np.testing.assert_allclose(tb.poses[tb.present], ta.poses[ta.present], atol=1e-9)
+        np.testing.assert_allclose(tb.size, ta.size)
+
+
+def test_box_axes_without_motion(scenes, tmp_path):
+    # Frozen boxes: vehicle shapes agree with PandaSet's convention -> no warning.
+    frozen = tmp_path / "frozen"
+    shutil.copytree(scenes["pandaset"], frozen)
+    _rewrite_boxes(frozen, _frozen)
+    a, _ = read(scenes["pandaset"])
+    b, parser, box_warnings = _read_warned(frozen)
+    assert parser.heading_axis.motion.sum() == 0 and parser.heading_axis.shape[1] >= 3
+    assert parser.heading_axis.axis == "+y" and box_warnings == []
+    ta = next(t for t in a.tracks if t.category == "vehicle")
+    tb = next(t for t in b.tracks if t.track_id == ta.track_id)
+    f = np.flatnonzero(ta.present)[0]
+    np.testing.assert_allclose(tb.poses[f], ta.poses[f], atol=1e-9)
+    # Frozen and x-along: shapes contradict the PandaSet convention, the sign is unknown -> warned.
+    odd = tmp_path / "frozen_x"
+    shutil.copytree(frozen, odd)
+    _rewrite_boxes(odd, _to_x_along)
+    _, parser, box_warnings = _read_warned(odd)
+    assert parser.heading_axis.axis == "+x"
+    assert len(box_warnings) == 1 and "ambiguous" in box_warnings[0]
+    # Frozen cubes: no evidence at all -> the source's convention, warned.
+    cubes = tmp_path / "cubes"
+    shutil.copytree(frozen, cubes)
+    _rewrite_boxes(cubes, lambda o2w, size: (o2w, np.ones_like(size)))
+    _, parser, box_warnings = _read_warned(cubes)
+    assert parser.heading_axis.axis == "+y"
+    assert len(box_warnings) == 1 and "cannot confirm" in box_warnings[0]
+    # An explicit axis is used as given, without checks.
+    c, parser, box_warnings = _read_warned(scenes["pandaset"], box_heading_axis="+x")
+    assert parser.heading_axis.reason == "configured" and box_warnings == []
+    for ta, tc in zip(a.tracks, c.tracks):
+        np.testing.assert_allclose(tc.poses[tc.present] @ _fix4(1), ta.poses[ta.present], atol=1e-9)
+
+
+def test_motion_votes_and_decision_rules():
+    t = np.arange(30)
+    o2w = np.tile(np.eye(4), (30, 1, 1))
+    o2w[:, :3, :3] = boxes.axis_fix(1).T  # file x points to world -y: the heading (world +x) is local +y
+    o2w[:, 0, 3] = 0.5 * t  # 5 m/s at 10 Hz
+    votes = boxes.motion_votes(t, o2w)
+    assert votes[1] >= 25 and votes.sum() == votes[1]
+    slow = o2w.copy()
+    slow[:, 0, 3] = 0.01 * t  # 0.3 m in total: no displacement reaches MIN_STEP
+    assert boxes.motion_votes(t, slow).sum() == 0
+    size = np.tile([1.9, 4.5, 1.5], (30, 1))
+    moving = [(t, o2w, size, "vehicle")] * 3
+    found = boxes.detect_heading_axis(moving, "+x", "waymo")
+    assert found.axis == "+y" and "following the motion" in found.warning
+    assert boxes.detect_heading_axis(moving, "+y", "pandaset").warning is None
+    # One moving track decides only with agreeing shapes.
+    parked = [(t, np.repeat(o2w[:1], 30, 0), size, "vehicle")] * 3
+    assert boxes.detect_heading_axis(moving[:1] + parked, "+x", "waymo").axis == "+y"
+    lone = boxes.detect_heading_axis([(t, o2w, np.tile([2.0, 2.0, 1.5], (30, 1)), "human")], "+x", "waymo")
+    assert lone.axis == "+x" and "cannot confirm" in lone.warning
+    np.testing.assert_allclose(boxes.size_fix(size, 1)[0], [4.5, 1.9, 1.5])
+
+
+def test_pixel_centre_convention_per_source(scenes, tmp_path):
+    assert set(PIXEL_CENTRES) == set(SOURCES) == set(BOX_HEADING_AXIS)
+    assert {s for s, c in PIXEL_CENTRES.items() if c == "integer"} == {"argoverse", "kitti", "nuplan"}
+    gt = ground_truth(scenes["pandaset"])
+    scene, parser = read(scenes["pandaset"])
+    assert parser.pixel_centres == "half"
+    np.testing.assert_allclose(scene.cameras[0].intrinsics, gt["intrinsics"][0], atol=1e-8)
+    # The same calibration written in OpenCV's convention (as Argoverse2, KITTI, NuPlan are):
+    # cx, cy 0.5 px smaller in the file, +0.5 when read; scaled as continuous coordinates.
+    dst = tmp_path / "opencv_k"
+    shutil.copytree(scenes["pandaset"], dst)
+    for f in (dst / "intrinsics").glob("*.txt"):
+        v = np.loadtxt(f)
+        v[2:4] -= 0.5
+        np.savetxt(f, v)
+    scene, parser = read(dst, file_pixel_centres="integer", scale=0.5)
+    assert parser.pixel_centres == "integer"
+    np.testing.assert_allclose(scene.cameras[0].intrinsics[:2], gt["intrinsics"][0][:2] * 0.5, atol=1e-8)

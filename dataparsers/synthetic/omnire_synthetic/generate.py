@@ -10,8 +10,12 @@ Output (DESIGN.md section 5 layout, ``style`` chooses the dataset conventions):
 - ``ground_truth.npz`` + ``ground_truth.json``: true boxes and body poses (generator world),
   what was written (after noise), the noise settings and the generator-to-file transform.
 
-Written intrinsics use the OpenCV pixel convention (pixel centres at integer coordinates),
-i.e. ``cx_file = cx - 0.5`` relative to our +0.5 convention.
+Intrinsics and boxes are written in the conventions the reference's files have for the
+style's dataset (``omnire_processed.formats``): the pixel-centre convention of
+``PIXEL_CENTRES`` (``cx_file = cx - 0.5`` for "integer" datasets; the three styles are all
+"half", i.e. omnire's, so ``cx_file = cx``) and the box axes of ``BOX_HEADING_AXIS`` (PandaSet
+style: local +y along the heading and box_size = (width, length, height); others: x along the
+heading, (length, width, height)). The ground truth is in omnire's conventions.
 """
 from __future__ import annotations
 
@@ -25,7 +29,8 @@ from typing import Literal
 import numpy as np
 import torch
 
-from omnire_processed.formats import WAYMO_TO_OPENCV
+from omnire_processed.boxes import AXES, axis_fix, size_fix
+from omnire_processed.formats import BOX_HEADING_AXIS, PIXEL_CENTRES, WAYMO_TO_OPENCV
 from omnire_synthetic import images
 from omnire_synthetic.meshes import Mesh, rigid, rot_z
 from omnire_synthetic.render import (
@@ -330,8 +335,9 @@ def _generate(out: str | Path, preset: str, opts: SynthOptions, progress, t_star
         if opts.style == "waymo":
             _write_matrix(out / "extrinsics" / f"{c}.txt", cam_to_ego[c] @ np.linalg.inv(WAYMO_TO_OPENCV))
         K = Ks[c]
-        # OpenCV pixel convention in the file (pixel centres at integers).
-        vals = [K[0, 0], K[1, 1], K[0, 2] - 0.5, K[1, 2] - 0.5, 0.0, 0.0, 0.0, 0.0, 0.0]
+        # The style's dataset's pixel-centre convention (Ks centre pixels at +0.5).
+        shift = 0.5 if PIXEL_CENTRES[opts.style] == "integer" else 0.0
+        vals = [K[0, 0], K[1, 1], K[0, 2] - shift, K[1, 2] - shift, 0.0, 0.0, 0.0, 0.0, 0.0]
         (out / "intrinsics" / f"{c}.txt").write_text("\n".join(f"{v:.10f}" for v in vals) + "\n")
     gt = _write_annotations(out, preset, opts, rng, actors, ego, cam_to_ego, Ks, G, times, names)
     t_write += time.perf_counter() - t1
@@ -423,6 +429,10 @@ def _write_annotations(out: Path, preset: str, opts: SynthOptions, rng: np.rando
                        times: np.ndarray, cam_names: list[str]) -> dict:
     F = len(times)
     names = CLASS_NAMES[opts.style]
+    # Box axes as the reference writes them for this dataset (omnire's box x = heading).
+    k_axis = AXES.index(BOX_HEADING_AXIS[opts.style])
+    to_file = np.eye(4)
+    to_file[:3, :3] = axis_fix(k_axis).T
     info, frame_instances = {}, {str(t): [] for t in range(F)}
     written_poses = []
     for i, a in enumerate(actors):
@@ -440,8 +450,8 @@ def _write_annotations(out: Path, preset: str, opts: SynthOptions, rng: np.rando
             "class_name": names[a.kind],
             "frame_annotations": {
                 "frame_idx": [int(t) for t in frames],
-                "obj_to_world": [(G @ noisy[t]).tolist() for t in frames],
-                "box_size": [[float(s) for s in a.size] for _ in frames],
+                "obj_to_world": [(G @ noisy[t] @ to_file).tolist() for t in frames],
+                "box_size": [[float(s) for s in size_fix(a.size, k_axis)] for _ in frames],
             },
         }
         for t in frames:
