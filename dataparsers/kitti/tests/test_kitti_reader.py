@@ -1,0 +1,336 @@
+"""KITTI tracking reader on a synthetic multi-frame sequence written in the KITTI layout:
+round trip against the processed reader and the ground truth, the devkit's conventions
+checked independently (Mercator poses, label boxes), stereo geometry, errors, and a short
+`omnire train` run."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from omnire.api import ConfigError, interpolate_track
+from omnire_kitti import (
+    KittiConfig,
+    KittiDataError,
+    KittiFileMissing,
+    category_of,
+    label_box,
+    oxts_poses,
+    read_calib,
+)
+from omnire_kitti.writer import CAMERA_T, write_kitti
+
+FRAMES = 10
+
+
+def parse(data: Path, **kw):
+    return KittiConfig(data=data, scale=1.0, **kw).setup().parse()
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    spec = inp.spec()
+    px = np.asarray(inp.read_image(0, 0, 0, 3, oiio.UINT8)).reshape(spec.height, spec.width, 3)
+    inp.close()
+    return px
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory):
+    from omnire_processed.reader import ProcessedDataparser, ProcessedDataparserConfig
+    from omnire_synthetic.generate import SynthOptions, generate
+
+    root = tmp_path_factory.mktemp("kitti")
+    proc = root / "processed"
+    # Waymo style: 14-column LiDAR with intensity in [0, 1], per-camera extrinsics.
+    generate(proc, "urban", SynthOptions(frames=FRAMES, width=64, height=40, num_cameras=1, style="waymo",
+                                         lidar_beams=16, lidar_azimuth_step_deg=0.8, write_depth=False))
+    out = root / "kitti"
+    out.mkdir()
+    summary = write_kitti(proc, out)
+    reader = ProcessedDataparser(ProcessedDataparserConfig(data=proc, scale=1.0, holdout_every=0, load_human_poses=False))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ref = reader.parse()
+    with np.load(proc / "ground_truth.npz") as z:
+        gt = {k: z[k] for k in z.files}
+    ego = gt["ego_to_world"]
+    M = np.linalg.inv(ego[0]) @ np.linalg.inv(reader.world_from_file @ gt["file_from_generator"])
+    return SimpleNamespace(proc=proc, out=out, split=out / "training", summary=summary, ref=ref, gt=gt, M=M,
+                           scene=parse(out))
+
+
+def copy_split(synth, tmp_path: Path) -> Path:
+    dst = tmp_path / "kitti" / "training"
+    shutil.copytree(synth.split, dst)
+    return dst.parent
+
+
+# ---------------------------------------------------------------------------- conventions
+def test_oxts_mercator_matches_devkit_geometry():
+    """1e-4 degrees of longitude at latitude 49 is cos(49 deg) * 6378137 * pi / 180 * 1e-4 m east;
+    of latitude, 6378137 * pi / 180 * 1e-4 m north (Mercator with the first row's scale)."""
+    rows = np.zeros((3, 30))
+    rows[:, 0], rows[:, 1], rows[:, 2] = 49.0, 8.4, 110.0
+    rows[1, 1] += 1e-4
+    rows[2, 0] += 1e-4
+    rows[2, 5] = np.pi / 2  # heading north
+    P = oxts_poses(rows)
+    step = 6378137.0 * np.pi / 180.0 * 1e-4
+    assert np.allclose(P[1, :3, 3] - P[0, :3, 3], [np.cos(np.deg2rad(49.0)) * step, 0, 0], atol=1e-6)
+    assert np.allclose(P[2, :3, 3] - P[0, :3, 3], [0, step, 0], atol=2e-4)
+    assert np.allclose(P[0, :3, :3], np.eye(3)) and np.allclose(P[2, :3, 0], [0, 1, 0])  # yaw 0 = east, CCW
+
+
+def test_label_box_matches_devkit_corners():
+    """The box corners equal the devkit's: Ry(ry) @ [x: +-l/2, y: 0 or -h, z: +-w/2] + location."""
+    h, w, l, x, y, z, ry = 1.5, 1.7, 4.2, 2.0, 1.6, 14.0, 0.3
+    c, s = np.cos(ry), np.sin(ry)
+    Ry = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    xc = l / 2 * np.array([1, 1, -1, -1, 1, 1, -1, -1])
+    yc = np.array([0, 0, 0, 0, -h, -h, -h, -h])
+    zc = w / 2 * np.array([1, -1, -1, 1, 1, -1, -1, 1])
+    devkit = (Ry @ np.stack([xc, yc, zc])).T + [x, y, z]
+    T = label_box(h, w, l, x, y, z, ry)
+    ours = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * [l / 2, w / 2, h / 2]
+    ours = ours @ T[:3, :3].T + T[:3, 3]
+    assert np.allclose(np.sort(ours, axis=0), np.sort(devkit, axis=0))
+    assert np.allclose(sorted(map(tuple, ours.round(9))), sorted(map(tuple, devkit.round(9))))
+    assert np.allclose(T[:3, 0], [c, 0, -s]) and np.allclose(T[:3, 2], [0, -1, 0])  # heading; z up = -y camera
+    assert np.isclose(np.linalg.det(T[:3, :3]), 1.0)
+
+
+def test_calib_keys_of_both_benchmarks(synth, tmp_path):
+    ours = read_calib(synth.split / "calib" / "0000.txt")
+    text = (synth.split / "calib" / "0000.txt").read_text()
+    for a, b in (("R_rect ", "R0_rect: "), ("Tr_velo_cam ", "Tr_velo_to_cam: "), ("Tr_imu_velo ", "Tr_imu_to_velo: ")):
+        text = text.replace(a, b)
+    (tmp_path / "c.txt").write_text(text)
+    other = read_calib(tmp_path / "c.txt")
+    assert all(np.array_equal(ours[k], other[k]) for k in ours)
+
+
+# ---------------------------------------------------------------------------- round trip
+def test_camera_geometry(synth):
+    s, ref = synth.scene, synth.ref
+    assert s.num_frames == FRAMES and [c.name for c in s.cameras] == ["image_02"]
+    cam = s.cameras[0]
+    expected = synth.M[None] @ ref.cameras[0].cam_to_world  # the synthetic (pitched) front camera
+    assert np.allclose(cam.cam_to_world[:, :3, 3], expected[:, :3, 3], atol=1e-8)  # same centre
+    assert np.allclose(cam.cam_to_world[:, :3, :3], expected[:, :3, :3] @ synth.summary["R_rect"].T, atol=1e-9)
+    assert np.allclose(cam.cam_to_world[:, :3, 1], [0, 0, -1], atol=1e-9)  # rectified: level, image y = down
+    assert np.allclose(cam.intrinsics, synth.summary["K_rect"], rtol=1e-11)
+    assert (cam.width, cam.height) == (64, 40) and cam.distortion is None
+    assert np.allclose(s.frame_timestamps, np.arange(FRAMES) / 10) and np.array_equal(cam.timestamps, s.frame_timestamps)
+    assert np.allclose(s.ego_poses, np.linalg.inv(synth.gt["ego_to_world"][0])[None] @ synth.gt["ego_to_world"],
+                       atol=1e-6)
+
+
+def test_rectified_image_content(synth):
+    """LiDAR points land on the same colours in image_02 (resampled) and the synthetic camera."""
+    s, ref = synth.scene, synth.ref
+    diffs = []
+    for f in (0, FRAMES - 1):
+        pts = s.lidar.points[f].astype(np.float64)
+        samples = []
+        for cam, c2w in ((s.cameras[0], s.cameras[0].cam_to_world[f]),
+                         (ref.cameras[0], synth.M @ ref.cameras[0].cam_to_world[f])):
+            w2c = np.linalg.inv(c2w)
+            pc = pts @ w2c[:3, :3].T + w2c[:3, 3]
+            uv = pc @ cam.intrinsics.T
+            uv = uv[:, :2] / np.maximum(uv[:, 2:], 1e-9)
+            samples.append((uv, pc[:, 2], read_rgb(cam.image_paths[f]).astype(float)))
+        (uv_a, z_a, im_a), (uv_b, z_b, im_b) = samples
+        ok = (z_a > 2) & (z_b > 2)
+        for uv in (uv_a, uv_b):
+            ok &= (uv[:, 0] > 2) & (uv[:, 0] < 62) & (uv[:, 1] > 2) & (uv[:, 1] < 38)
+        a = im_a[uv_a[ok, 1].astype(int), uv_a[ok, 0].astype(int)]
+        b = im_b[uv_b[ok, 1].astype(int), uv_b[ok, 0].astype(int)]
+        assert ok.sum() > 200
+        diffs.append((np.median(np.abs(a - b)), np.mean(np.abs(a - b))))
+    # a 3-pixel misregistration gives a median of ~10 and a mean of ~22 levels here
+    assert max(d[0] for d in diffs) <= 5 and max(d[1] for d in diffs) < 13, diffs
+
+
+def test_lidar_round_trip(synth):
+    s, ref = synth.scene, synth.ref
+    for f in range(FRAMES):
+        expected = ref.lidar.points[f].astype(np.float64) @ synth.M[:3, :3].T + synth.M[:3, 3]
+        assert s.lidar.points[f].shape == expected.shape
+        assert np.abs(s.lidar.points[f] - expected).max() < 5e-5
+    origins = ref.lidar.origins @ synth.M[:3, :3].T + synth.M[:3, 3]
+    assert np.allclose(s.lidar.origins, origins, atol=1e-6)
+
+
+def test_boxes_round_trip(synth):
+    s, ref = synth.scene, synth.ref
+    labels = np.loadtxt(synth.split / "label_02" / "0000.txt", dtype=str, ndmin=2)
+    mine = {t.track_id: t for t in s.tracks}
+    ids = list(synth.gt["track_ids"])
+    t = s.frame_timestamps
+    checked = 0
+    for tr in ref.tracks:
+        tid = str(ids.index(tr.track_id))
+        rows = labels[labels[:, 1] == tid]
+        if not len(rows):
+            assert tid not in mine
+            continue
+        m = mine[tid]
+        labelled = rows[:, 0].astype(int)
+        assert tr.present[labelled].all()
+        _, expected_present = interpolate_track(t[labelled], np.tile(np.eye(4), (len(labelled), 1, 1)),
+                                                np.ones(len(labelled), bool), t, max_gap=0.5)
+        assert np.array_equal(m.present, expected_present)
+        poses = synth.M[None] @ tr.poses
+        assert np.allclose(m.poses[labelled, :3, 3], poses[labelled, :3, 3], atol=1e-5)
+        assert np.allclose(m.poses[labelled, :3, :3], poses[labelled, :3, :3], atol=2e-6)
+        assert np.allclose(m.size, tr.size, atol=1e-6)
+        assert m.class_name in ("Car", "Pedestrian", "Cyclist") and m.category == category_of(m.class_name)
+        checked += 1
+    assert checked >= 4
+
+
+def test_dontcare_skipped_and_stereo(synth, tmp_path):
+    root = copy_split(synth, tmp_path)
+    split = root / "training"
+    lab = split / "label_02" / "0000.txt"
+    lab.write_text("0 -1 DontCare -1 -1 -10.000000 219.310000 188.490000 245.500000 218.560000 -1000.000000 "
+                   "-1000.000000 -1000.000000 -10.000000 -1.000000 -1.000000 -1.000000\n" + lab.read_text())
+    shutil.copytree(split / "image_02", split / "image_03")  # geometry only: contents do not matter here
+    s = parse(root, load_lidar=False)
+    assert [c.name for c in s.cameras] == ["image_02", "image_03"]
+    assert [t.track_id for t in s.tracks] == [t.track_id for t in synth.scene.tracks]
+    left, right = s.cameras[0].cam_to_world, s.cameras[1].cam_to_world
+    t2, t3 = np.array(CAMERA_T[2]), np.array(CAMERA_T[3])
+    assert np.allclose(right[:, :3, :3], left[:, :3, :3])
+    assert np.allclose(right[:, :3, 3] - left[:, :3, 3], left[:, :3, :3] @ (t2 - t3), atol=1e-9)  # ~0.53 m right
+    assert np.allclose(np.linalg.norm(right[:, :3, 3] - left[:, :3, 3], axis=1), 0.532, atol=1e-3)
+    only = parse(root, cameras=("image_03",), load_lidar=False, start_frame=2, end_frame=5, sequence="0")
+    assert only.source_frames.tolist() == [2, 3, 4] and np.allclose(only.ego_poses[0], np.eye(4), atol=1e-9)
+
+
+def test_label_gaps_interpolated(synth, tmp_path):
+    root = copy_split(synth, tmp_path)
+    lab = root / "training" / "label_02" / "0000.txt"
+    rows = [r.split() for r in lab.read_text().splitlines()]
+    full = {t.track_id: t for t in synth.scene.tracks}
+    a, b = [t.track_id for t in synth.scene.tracks if t.present.all()][:2]
+    drop = {(a, "4")} | {(b, str(f)) for f in range(3, 9)}  # a: 0.2 s gap; b: 0.7 s gap
+    lab.write_text("\n".join(" ".join(r) for r in rows if (r[1], r[0]) not in drop) + "\n")
+    s = {t.track_id: t for t in parse(root, load_lidar=False).tracks}
+    assert s[a].present.all()
+    mid = s[a].poses[4]
+    assert np.allclose(mid[:3, 3], (full[a].poses[3, :3, 3] + full[a].poses[5, :3, 3]) / 2, atol=1e-9)
+    assert np.linalg.norm(mid[:3, 3] - full[a].poses[4, :3, 3]) < 0.05  # the true pose, nearly
+    assert s[b].present.tolist() == [True] * 3 + [False] * 6 + [True]
+    wide = {t.track_id: t for t in parse(root, load_lidar=False, max_box_gap=0.8).tracks}
+    assert wide[b].present.all()
+
+
+# ---------------------------------------------------------------------------- errors
+def test_error_calib(synth, tmp_path):
+    root = copy_split(synth, tmp_path)
+    path = root / "training" / "calib" / "0000.txt"
+    good = path.read_text()
+    path.write_text("\n".join(l for l in good.splitlines() if not l.startswith("Tr_imu_velo")))
+    with pytest.raises(KittiDataError, match=r"calib/0000\.txt: no Tr_imu_velo line \(also accepted: Tr_imu_to_velo\)"):
+        parse(root)
+    path.write_text(good.replace("R_rect 1.0", "R_rect x"))
+    with pytest.raises(KittiDataError, match=r"R_rect has a non-numeric value; expected 9 numbers"):
+        parse(root)
+    path.write_text(good.replace("P2: ", "P2: 1.0 "))
+    with pytest.raises(KittiDataError, match=r"P2 has 13 values, expected 12"):
+        parse(root)
+
+
+def test_error_oxts_and_labels(synth, tmp_path):
+    root = copy_split(synth, tmp_path)
+    oxts = root / "training" / "oxts" / "0000.txt"
+    lines = oxts.read_text().splitlines()
+    oxts.write_text("\n".join(lines[:3] + [" ".join(lines[3].split()[:12])] + lines[4:]))
+    with pytest.raises(KittiDataError, match=r"oxts/0000\.txt: line 4 has 12 values, expected 30"):
+        parse(root)
+    oxts.write_text("\n".join(lines) + "\n")
+    lab = root / "training" / "label_02" / "0000.txt"
+    good = lab.read_text()
+    lab.write_text(good + "3 7 Car 0 0 0.1 1 2 3 4 1.5 1.6\n")
+    with pytest.raises(KittiDataError, match=r"label_02/0000\.txt: line \d+ has 12 columns, expected 17"):
+        parse(root)
+    lab.write_text(good + f"{FRAMES} 0 Car 0 0 0.1 1 2 3 4 1.5 1.6 4.0 0 1.6 10 -1.57\n")
+    with pytest.raises(KittiDataError, match=rf"frame {FRAMES} outside the sequence's 0\.\.{FRAMES - 1}"):
+        parse(root)
+    lab.write_text(good + good.splitlines()[0] + "\n")
+    with pytest.raises(KittiDataError, match=r"track \d+ appears twice in frame 0"):
+        parse(root)
+
+
+def test_error_files(synth, tmp_path):
+    root = copy_split(synth, tmp_path)
+    split = root / "training"
+    (split / "image_02" / "0000" / "000003.png").unlink()
+    with pytest.raises(KittiFileMissing, match=r"image_02/0000/000003\.png: missing image of image_02"):
+        parse(root)
+    assert parse(root, end_frame=3).num_frames == 3
+    velo = split / "velodyne" / "0000" / "000001.bin"
+    velo.write_bytes(velo.read_bytes()[:-4])
+    with pytest.raises(KittiDataError, match=r"000001\.bin: \d+ bytes is not a whole number of 16-byte points"):
+        parse(root, end_frame=3)
+    velo.unlink()  # a missing scan is a gap (as in training sequence 0001)
+    s = parse(root, end_frame=3)
+    assert s.lidar.points[1] is None and np.isnan(s.lidar.origins[1]).all()
+    with pytest.raises(KittiFileMissing, match=r"image_03/0000: missing \(cameras \['image_03'\] requested"):
+        parse(root, cameras=("image_03",))
+    with pytest.raises(ConfigError, match=r"cameras: \['image_01'\] are not KITTI colour cameras"):
+        parse(root, cameras=("image_01",))
+    with pytest.raises(ConfigError, match=r"sequence: 'abc'"):
+        parse(root, sequence="abc")
+    with pytest.raises(KittiFileMissing, match=r"calib/0004\.txt: missing calibration file"):
+        parse(root, sequence="4")
+    with pytest.raises(KittiFileMissing, match=r"testing: no such split folder .*\['training'\]"):
+        parse(root, split="testing")
+    with pytest.raises(KittiFileMissing, match="nowhere: KITTI tracking folder does not exist"):
+        parse(tmp_path / "nowhere")
+    (split / "label_02" / "0000.txt").unlink()  # testing-like: no labels, no actors
+    assert parse(split, end_frame=3).tracks == []
+
+
+def test_category_mapping():
+    for label, cat in {"Car": "vehicle", "Van": "vehicle", "Truck": "vehicle", "Tram": "vehicle",
+                       "Pedestrian": "human", "Person_sitting": "human", "Person": "human",
+                       "Cyclist": "cyclist", "Misc": "other"}.items():
+        assert category_of(label) == cat
+
+
+# ---------------------------------------------------------------------------- plugin and CLI
+def test_plugin_registered():
+    from omnire.plugins import load_plugins
+
+    plugins = load_plugins()
+    assert "kitti" in plugins.dataparsers.names() and "kitti" in plugins.scene_writers.names()
+    assert plugins.dataparsers.provenance("kitti").distribution == "omnire-dataparser-kitti"
+
+
+def test_synth_format_and_train(tmp_path):
+    from omnire_synthetic.cli import main as synth_main
+
+    scene = tmp_path / "tiny_kitti"
+    assert synth_main(["urban", str(scene), "--tiny", "--format", "kitti"]) == 0
+    assert (scene / "training" / "calib" / "0000.txt").is_file()
+    env = dict(os.environ, OMP_NUM_THREADS="1", COLUMNS="200")
+    out = subprocess.run(
+        [sys.executable, "-m", "omnire.cli", "train", "3dgs", "kitti", "--data", str(scene), "--scale", "1",
+         "--trainer.max-steps", "3", "--trainer.no-progress", "--method.rasterizer", "torch",
+         "--method.nodes.background.max-lidar-points", "2000", "--method.nodes.background.num-far-points", "200",
+         "--trainer.output-dir", str(tmp_path / "runs")],
+        capture_output=True, text=True, env=env, timeout=600)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "kitti_training_0000" in out.stdout
