@@ -94,8 +94,10 @@ def test_layout_is_nuscenes_like(synth):
     anns = json.loads((tables / "sample_annotation.json").read_text())
     assert all(len(a["size"]) == 3 and len(a["rotation"]) == 4 for a in anns)
     assert any(a["num_lidar_pts"] > 0 for a in anns)
+    modality = {r["token"]: r["modality"] for r in json.loads((tables / "sensor.json").read_text())}
     cal = json.loads((tables / "calibrated_sensor.json").read_text())
-    assert all((c["camera_intrinsic"] == []) == (c["translation"][2] > 1.8) for c in cal)  # LiDAR: no K
+    assert sorted(modality[c["sensor_token"]] for c in cal) == ["camera"] * 6 + ["lidar"]
+    assert all((c["camera_intrinsic"] == []) == (modality[c["sensor_token"]] == "lidar") for c in cal)
 
 
 # ---------------------------------------------------------------------------- round trip
@@ -161,6 +163,7 @@ def test_boxes_round_trip_and_interpolation(synth):
         assert np.einsum("fi,fi->f", m.poses[m.present, :3, 0], truth[m.present, :3, 0]).min() > 0.99  # heading
         assert m.category == category_of(m.class_name) and m.class_name.split(".")[0] in ("vehicle", "human")
         checked += 1
+    print(f"{checked} tracks; interpolated boxes within {worst:.3f} m of the true motion")
     assert checked >= 5 and worst < 0.1, (checked, worst)
 
 
