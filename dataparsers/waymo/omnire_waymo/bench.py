@@ -144,7 +144,6 @@ def _status_kb(field: str) -> int:
 
 def read_and_measure(path: Path, image_dir: Path, load_lidar: bool, max_points: int) -> dict:
     """In this process: parse ``path`` and report memory (run it in a fresh process)."""
-    import omnire_waymo.dataparser as dp  # noqa: F401 - imports before the baseline
     from omnire_waymo.dataparser import WaymoConfig
     import omnire.data.images  # noqa: F401
     import google.protobuf.message  # noqa: F401
@@ -157,7 +156,7 @@ def read_and_measure(path: Path, image_dir: Path, load_lidar: bool, max_points: 
     peak = _status_kb("VmHWM")
     retained = sum(p.nbytes for p in (scene.lidar.points if scene.lidar else []) if p is not None)
     retained += sum(c.cam_to_world.nbytes + sum(v.nbytes for v in c.extras.values()) for c in scene.cameras)
-    retained += sum(tr.poses.nbytes for tr in scene.tracks)
+    retained += sum(tr.poses.nbytes + sum(getattr(v, "nbytes", 0) for v in tr.extras.values()) for tr in scene.tracks)
     return {"frames": scene.num_frames, "seconds": seconds, "baseline_mb": base / 1024,
             "peak_growth_mb": (peak - base) / 1024, "retained_mb": retained / 2**20,
             "lidar_points": int(sum(len(p) for p in scene.lidar.points if p is not None)) if scene.lidar else 0}

@@ -220,19 +220,6 @@ class _CameraFrames:
     readout_done: list = dataclasses.field(default_factory=list)
 
 
-@dataclasses.dataclass
-class _Obs:
-    frame: int
-    type: str
-    box_to_world: np.ndarray
-    size: np.ndarray
-    synced_to_world: Optional[np.ndarray]
-    synced_size: Optional[np.ndarray]
-    camera: str
-    speed: np.ndarray
-    num_points: int
-
-
 class WaymoDataparser(Dataparser):
     """Reads one Waymo Open Dataset v1 segment (see the module docstring)."""
 
@@ -337,7 +324,7 @@ class WaymoDataparser(Dataparser):
         self.ego_global: list[np.ndarray] = []
         self.points: list[Optional[np.ndarray]] = []
         self.origins: list[np.ndarray] = []
-        self.labels: dict[str, list[_Obs]] = {}
+        self.labels: list[dict] = []  # per frame: arrays over its labels (compact for long segments)
         self.checked_size: set[str] = set()
 
     def _add(self, frame, span: RecordSpan, index: int, k: int) -> None:
@@ -390,13 +377,16 @@ class WaymoDataparser(Dataparser):
             cam.readout_done.append(im.camera_readout_done_time)
 
     def _check_image(self, path: Path, cam: _CameraFrames, where: str) -> None:
-        from omnire.api import ImageReadError
-        from omnire.data.images import image_size
+        """The first image of each camera must have the calibrated size (header only)."""
+        import OpenImageIO as oiio
 
+        inp = oiio.ImageInput.open(str(path))
+        if inp is None:
+            raise SceneDataError(f"{where}.image: not a readable JPEG ({oiio.geterror()})")
         try:
-            size = image_size(path)
-        except ImageReadError as exc:
-            raise SceneDataError(f"{where}.image: not a readable JPEG ({exc})") from None
+            size = (inp.spec().width, inp.spec().height)
+        finally:
+            inp.close()
         if size != (cam.calib.width, cam.calib.height):
             raise SceneDataError(
                 f"{where}.image is {size[0]}x{size[1]} but its calibration says {cam.calib.width}x{cam.calib.height} "
@@ -466,32 +456,33 @@ class WaymoDataparser(Dataparser):
 
     def _labels(self, frame, where: str, k: int, vehicle_pose: np.ndarray) -> None:
         to_world = self.world @ vehicle_pose
+        n = len(frame.laser_labels)
+        rec = {
+            "frame": np.full(n, k, np.int64), "id": [], "type": [], "camera": [],
+            "pose": np.empty((n, 4, 4)), "size": np.empty((n, 3)), "speed": np.empty((n, 3)),
+            "synced": np.full((n, 4, 4), np.nan), "synced_size": np.full((n, 3), np.nan),
+            "num_points": np.empty(n, np.int64),
+        }
         for j, lab in enumerate(frame.laser_labels):
             if not lab.id:
                 raise SceneDataError(f"{where}: laser_labels[{j}].id is empty; expected the object's tracking id")
             b = lab.box
-            size = np.array([b.length, b.width, b.height], dtype=np.float64)
-            if not (np.isfinite(size).all() and (size >= 0).all()):
-                raise SceneDataError(f"{where}: laser_labels[{j}] ({lab.id}) box size {size.tolist()}, expected finite >= 0")
-            synced = synced_size = None
+            size = (b.length, b.width, b.height)
+            if not (np.isfinite(size).all() and min(size) >= 0):
+                raise SceneDataError(f"{where}: laser_labels[{j}] ({lab.id}) box size {list(size)}, expected finite >= 0")
+            rec["id"].append(lab.id)
+            rec["type"].append(LABEL_TYPES.get(lab.type, "TYPE_UNKNOWN"))
+            rec["camera"].append(lab.most_visible_camera_name)
+            rec["pose"][j] = to_world @ box_to_vehicle(b)
+            rec["size"][j] = size
+            m = lab.metadata
+            rec["speed"][j] = (m.speed_x, m.speed_y, m.speed_z)
+            rec["num_points"][j] = lab.num_lidar_points_in_box
             if lab.HasField("camera_synced_box"):
                 sb = lab.camera_synced_box
-                synced = to_world @ box_to_vehicle(sb)
-                synced_size = np.array([sb.length, sb.width, sb.height], dtype=np.float64)
-            m = lab.metadata
-            self.labels.setdefault(lab.id, []).append(
-                _Obs(
-                    frame=k,
-                    type=LABEL_TYPES.get(lab.type, "TYPE_UNKNOWN"),
-                    box_to_world=to_world @ box_to_vehicle(b),
-                    size=size,
-                    synced_to_world=synced,
-                    synced_size=synced_size,
-                    camera=lab.most_visible_camera_name,
-                    speed=np.array([m.speed_x, m.speed_y, m.speed_z], dtype=np.float64),
-                    num_points=int(lab.num_lidar_points_in_box),
-                )
-            )
+                rec["synced"][j] = to_world @ box_to_vehicle(sb)
+                rec["synced_size"][j] = (sb.length, sb.width, sb.height)
+        self.labels.append(rec)
 
     # -- assembly ------------------------------------------------------------------------
     def _finish(self, selected: np.ndarray) -> SceneData:
@@ -553,16 +544,24 @@ class WaymoDataparser(Dataparser):
     def _tracks(self, times: np.ndarray) -> list[ActorTrack]:
         cfg = self.config
         F = len(times)
+        cat = {k: np.concatenate([r[k] for r in self.labels]) for k in
+               ("frame", "pose", "size", "speed", "synced", "synced_size", "num_points")}
+        ids = np.array([i for r in self.labels for i in r["id"]], dtype=object)
+        kinds = np.array([t for r in self.labels for t in r["type"]], dtype=object)
+        cams = np.array([c for r in self.labels for c in r["camera"]], dtype=object)
+        if not len(ids):
+            return []
+        uniq, inverse = np.unique(ids.astype(str), return_inverse=True)
         tracks = []
-        for tid in sorted(self.labels):
-            obs = self.labels[tid]
-            idx = np.array([o.frame for o in obs])
+        for u, tid in enumerate(uniq):
+            rows = np.flatnonzero(inverse == u)
+            idx = cat["frame"][rows]
             if len(np.unique(idx)) != len(idx):
                 raise SceneDataError(f"{self.path}: object id {tid!r} is labelled twice in one frame")
             annotated = np.zeros(F, bool)
             annotated[idx] = True
             poses = np.tile(np.eye(4), (F, 1, 1))
-            poses[idx] = np.stack([o.box_to_world for o in obs])
+            poses[idx] = cat["pose"][rows]
             if cfg.max_track_gap > 0 and len(idx) > 1:
                 filled, present = interpolate_track(times, poses, annotated, times, max_gap=cfg.max_track_gap)
                 poses = np.where(annotated[:, None, None], poses, filled)
@@ -574,37 +573,36 @@ class WaymoDataparser(Dataparser):
             last = np.maximum.accumulate(np.where(present, np.arange(F), -1))
             last[last < 0] = idx.min()
             poses = poses[last]
-            sizes = np.stack([o.size for o in obs])
-            types, counts = np.unique([o.type for o in obs], return_counts=True)
+            types, counts = np.unique(kinds[rows].astype(str), return_counts=True)
             label = str(types[np.argmax(counts)])
             centres = poses[present, :3, 3]
             n = max(1, len(centres) // 3)
             moved = float(np.linalg.norm(np.median(centres[-n:], 0) - np.median(centres[:n], 0)))
 
-            def per_frame(values, fill, dtype=np.float64):
-                arr = np.full((F,) + np.shape(fill), fill, dtype=dtype)
-                for o, v in zip(obs, values):
-                    if v is not None:
-                        arr[o.frame] = v
+            def per_frame(key, fill, values=None):
+                src = cat[key][rows] if values is None else values
+                arr = np.full((F,) + np.shape(src)[1:], fill, dtype=np.asarray(src).dtype)
+                arr[idx] = src
                 return arr
 
             extras = {
-                "size_per_frame": per_frame([o.size for o in obs], np.full(3, np.nan)),
+                "size_per_frame": per_frame("size", np.nan),
                 "interpolated": present & ~annotated,
-                "speed": per_frame([o.speed for o in obs], np.full(3, np.nan)),
-                "num_lidar_points_in_box": per_frame([o.num_points for o in obs], -1, np.int64),
+                "speed": per_frame("speed", np.nan),
+                "num_lidar_points_in_box": per_frame("num_points", -1),
             }
-            if any(o.synced_to_world is not None for o in obs):
-                extras["camera_synced_box_to_world"] = per_frame([o.synced_to_world for o in obs], np.full((4, 4), np.nan))
-                extras["camera_synced_size"] = per_frame([o.synced_size for o in obs], np.full(3, np.nan))
-                extras["most_visible_camera"] = per_frame([o.camera for o in obs], "", object)
+            synced = cat["synced"][rows]
+            if np.isfinite(synced[:, 0, 0]).any():
+                extras["camera_synced_box_to_world"] = per_frame("synced", np.nan)
+                extras["camera_synced_size"] = per_frame("synced_size", np.nan)
+                extras["most_visible_camera"] = per_frame("", "", cams[rows])
             tracks.append(
                 ActorTrack(
-                    track_id=tid,
+                    track_id=str(tid),
                     class_name=label,
                     category=CATEGORY.get(label, "other"),
                     poses=poses,
-                    size=sizes.max(axis=0),
+                    size=cat["size"][rows].max(axis=0),
                     present=present,
                     stationary=moved < cfg.stationary_threshold,
                     extras=extras,
@@ -625,11 +623,11 @@ class WaymoConfig(LogDataparserConfig):
     lidars: tuple[str, ...] = ALL_LIDARS
     """LiDARs whose range images become points: any of TOP, FRONT, SIDE_LEFT, SIDE_RIGHT, REAR."""
     lidar_returns: tuple[int, ...] = (1, 2)
-    """Range image returns to use: 1 (strongest), 2 (second)."""
+    """Range image returns to use: 1 (strongest), 2 (second strongest)."""
     max_lidar_points_per_frame: int = 0
     """Randomly thin each frame's points to at most this many (fixed seed per frame); 0 keeps all."""
     image_dir: Optional[Path] = None
-    """Where the JPEGs embedded in the segment are extracted (reused when present); default $OMNIRE_WAYMO_IMAGE_DIR or ~/.cache/omnire/waymo-images/<segment name>. Never inside the dataset folder."""
+    """Where the JPEGs embedded in the segment are extracted (reused when present); default <root>/<segment name> with root $OMNIRE_WAYMO_IMAGE_DIR or ~/.cache/omnire/waymo-images. Never inside the dataset folder."""
     camera_time: Literal["exposure", "pose"] = "exposure"
     """Camera timestamps: exposure = mid-exposure at the principal point from the rolling-shutter fields (poses extrapolated there with the image's velocity); pose = CameraImage.pose_timestamp."""
     max_track_gap: float = 1.0

@@ -234,6 +234,11 @@ def test_error_missing_image_and_calibration(synthetic, tmp_path):
         w.write(frame.SerializeToString())
     with pytest.raises(SceneDataError, match=r"frame 0 .*images has no FRONT_LEFT image"):
         waymo(path, tmp_path / "img")
+    frame.context.camera_calibrations[2].width = 100
+    with TFRecordWriter(path) as w:
+        w.write(frame.SerializeToString())
+    with pytest.raises(SceneDataError, match=r"images\[FRONT_RIGHT\]\.image is 72x48 but its calibration says 100x48"):
+        waymo(path, tmp_path / "img", cameras=("FRONT_RIGHT",))
     del frame.context.camera_calibrations[0].intrinsic[4:]
     with TFRecordWriter(path) as w:
         w.write(frame.SerializeToString())

@@ -51,10 +51,11 @@ def refresh(src: Path) -> None:
         (OUT / name).write_text(_rewrite((src / rel).read_text()))
 
 
-def compile_protos() -> None:
+def compile_protos(out_root: Path = HERE) -> None:
+    """``*_pb2.py`` for the shipped ``.proto`` files under ``out_root/omnire_waymo/wod``."""
     from grpc_tools import protoc
 
-    args = ["protoc", f"-I{HERE}", f"--python_out={HERE}"] + [str(OUT / n) for n in FILES.values()]
+    args = ["protoc", f"-I{HERE}", f"--python_out={out_root}"] + [str(OUT / n) for n in FILES.values()]
     if protoc.main(args) != 0:
         raise SystemExit("protoc failed")
 
