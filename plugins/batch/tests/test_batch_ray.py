@@ -1,0 +1,146 @@
+"""``omnire batch`` end to end: a real local Ray instance (2 CPUs), real ``omnire train``
+subprocesses on a tiny synthetic scene, failures, reruns, and a batch killed mid-training."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from omnire_batch.runs import checkpoint_steps, read_metrics
+
+SMALL = "--method.nodes.background.max-lidar-points 2000 --method.nodes.background.num-far-points 200"
+ENV = dict(os.environ, COLUMNS="200", OMP_NUM_THREADS="1")
+
+
+def batch(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "omnire.cli", "batch", "--local-cpus", "2", *args],
+                          capture_output=True, text=True, timeout=timeout, env=ENV)
+
+
+def test_failing_job_is_reported_others_finish_and_a_rerun_runs_nothing(tmp_path):
+    out = tmp_path / "out"
+    config = tmp_path / "tiny.toml"
+    config.write_text(f"""
+output = "{out}"
+steps = 40
+checkpoints = 2
+method_args = "{SMALL}"
+
+[[scene]]
+name = "tiny"
+synth = "empty"          # generated once by a Ray task before the jobs
+synth_args = "--tiny"
+args = "--holdout-every 4"
+
+[[method]]
+name = "3dgs"
+
+[[method]]
+name = "3dgs-dim"
+method = "3dgs"
+args = "--method.nodes.background.init-opacity 0.05"
+
+[[method]]
+name = "broken"
+method = "3dgs"
+args = "--method.no-such-flag 1"
+""")
+    first = batch("--config", str(config))
+    text = first.stdout + first.stderr
+    assert first.returncode == 1, text  # one job failed
+    assert "3 jobs" in text and "3 to run" in text and "local Ray instance" in text
+    assert "tiny/broken-seed0: FAILED (exit 2)" in text
+    assert "no-such-flag" in text  # the log tail of the failed job
+    saved = json.loads((out / "results.json").read_text())
+    by_label = {r["method"]: r for r in saved["results"]}
+    assert by_label["broken"]["status"] == "failed" and "no-such-flag" in by_label["broken"]["error"]
+    for label in ("3dgs", "3dgs-dim"):
+        r = by_label[label]
+        assert r["status"] == "ok" and r["steps_done"] == 40 and r["ran"], r
+        assert [c["step"] for c in r["curve"]] == [20, 40]  # one evaluation on the way, the final one
+        assert r["final"]["novel_view.views"] > 0 and r["final"]["novel_view.full_psnr"] > 5
+        assert sorted(checkpoint_steps(out / "runs" / "tiny" / f"{label}-seed0")) == [20, 40]
+    assert saved["summary"]["methods"]["3dgs"]["novel_view.full_psnr"]["n"] == 1
+    md = (out / "results.md").read_text()
+    assert "### Across scenes and seeds" in md and "| 3dgs | 1/1 |" in md and "| broken | 0/1 |" in md
+    assert "| broken | failed (exit 2) |" in md  # omnire bench train's per-scene table
+    assert (out / "psnr_vs_time.png").stat().st_size > 1000 and (out / "plots" / "tiny.png").is_file()
+
+    logs = {p: p.stat().st_mtime_ns for p in (out / "logs").rglob("*.log")}
+    metrics = {p: p.read_bytes() for p in (out / "runs").rglob("metrics.jsonl")}
+    again = batch("--config", str(config))
+    text = again.stdout + again.stderr
+    assert again.returncode == 1, text  # still one failed job, reported again
+    assert "1 failed before (skipped" in text and "2 done (skipped)" in text and "0 to run" in text
+    assert "local Ray instance" not in text  # nothing to run: Ray is not even started
+    assert "failed: tiny/broken-seed0" in text and "no-such-flag" in text
+    assert {p: p.stat().st_mtime_ns for p in (out / "logs").rglob("*.log")} == logs
+    assert {p: p.read_bytes() for p in (out / "runs").rglob("metrics.jsonl")} == metrics
+    assert json.loads((out / "results.json").read_text())["results"] == saved["results"]
+
+
+def _wait_for_checkpoints(run: Path, proc: subprocess.Popen, above: int, deadline_s: float = 150) -> list[int]:
+    end = time.monotonic() + deadline_s
+    while time.monotonic() < end:
+        steps = checkpoint_steps(run)
+        if any(s > above for s in steps):
+            return steps
+        assert proc.poll() is None, proc.communicate()[0]
+        time.sleep(0.1)
+    proc.kill()
+    raise AssertionError(f"no checkpoint past step {above} in {run} after {deadline_s} s")
+
+
+def test_killed_batch_resumes_from_the_newest_checkpoint(tmp_path):
+    """SIGTERM (the batch asks its jobs to stop), then SIGKILL of the batch process mid-training:
+    each rerun continues the job from its newest checkpoint instead of starting again."""
+    out = tmp_path / "out"
+    args = ["--scenes", "tiny=synth:empty --tiny", "--methods", "3dgs", "--steps", "1000", "--checkpoints", "1",
+            "--checkpoint-every", "50", f"--method-args={SMALL}", "--output", str(out)]
+    run = out / "runs" / "tiny" / "3dgs-seed0"
+    cmd = [sys.executable, "-m", "omnire.cli", "batch", "--local-cpus", "2", *args]
+
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    _wait_for_checkpoints(run, proc, 0)
+    proc.send_signal(signal.SIGTERM)
+    text = proc.communicate(timeout=120)[0]
+    assert proc.returncode == 130, text
+    assert "stopping: each running job writes a checkpoint" in text and "INTERRUPTED" in text
+    record = json.loads((out / "jobs" / "tiny" / "3dgs-seed0.json").read_text())
+    assert record["status"] == "interrupted"
+    first = checkpoint_steps(run)
+    assert 0 < first[-1] < 1000
+
+    # Second attempt resumes; kill the batch process outright once it has gone further.
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    _wait_for_checkpoints(run, proc, first[-1])
+    proc.kill()
+    text = proc.communicate(timeout=30)[0]
+    assert "1 to run (1 resume from a checkpoint)" in text, text
+
+    # Give an orphaned trainer a moment (the rerun also waits for its lock), then rerun.
+    time.sleep(1.0)
+    before = {s: (run / "checkpoints" / f"step-{s:06d}.pt").stat().st_mtime_ns for s in checkpoint_steps(run)}
+    newest = max(before)
+    assert newest > first[-1]
+    started = time.time_ns()
+    last = batch(*args, timeout=300)
+    text = last.stdout + last.stderr
+    assert last.returncode == 0, text
+    result = json.loads((out / "results.json").read_text())["results"][0]
+    assert result["status"] == "ok" and result["steps_done"] == 1000
+    assert result["resumed_from"] is not None and result["resumed_from"] >= newest, (result["resumed_from"], newest)
+    resumed = result["resumed_from"]
+    for step, mtime in before.items():  # what came before the resume point was not redone
+        if step <= resumed:
+            assert (run / "checkpoints" / f"step-{step:06d}.pt").stat().st_mtime_ns == mtime < started
+    assert all((run / "checkpoints" / f"step-{s:06d}.pt").stat().st_mtime_ns >= started
+               for s in checkpoint_steps(run) if s > resumed)
+    log = (out / "logs" / "tiny" / "3dgs-seed0.log").read_text()
+    headers = [line for line in log.splitlines() if line.startswith("=== ")]
+    assert len(headers) == 3 and "(new run)" in headers[0]
+    assert f"(resuming from step {first[-1]})" in headers[1] and f"(resuming from step {resumed})" in headers[2]
+    steps = [r["step"] for r in read_metrics(run) if "its" in r]
+    assert steps == sorted(set(steps)) and steps[-1] == 1000 and steps[0] <= 50
