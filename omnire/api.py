@@ -3,6 +3,7 @@
 Third-party plugins (node types, dataparsers, rasterizers, losses, methods, commands, pose
 estimators, scene writers) import from here only; docs/plugins.md shows each in use.
 """
+from omnire.camera import Camera, in_frustum
 from omnire.config import InstantiateConfig
 from omnire.data.dataparser import Dataparser, DataparserConfig, LogDataparserConfig, first_pose_world, frame_range
 from omnire.data.images import ImageCache, ImageReadError
@@ -14,10 +15,12 @@ from omnire.data.scene import (
     LidarSweeps,
     SceneData,
     SceneDataError,
+    SceneTime,
     View,
     holdout_split,
 )
-from omnire.errors import ConfigError, UserError
+from omnire.errors import ConfigError, MissingFileError, UserError
+from omnire.gaussians import GAUSSIAN_KEYS, Gaussians, rgb_to_sh0
 from omnire.geometry import (
     axis_angle_to_rotmat,
     invert_se3,
@@ -31,6 +34,36 @@ from omnire.geometry import (
 from omnire.hookspecs import hookimpl
 from omnire.interpolation import bracket, interpolate_poses, interpolate_track
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
+from omnire.io.images import write_png
+from omnire.losses import LossContext
+from omnire.method import MethodConfig
+from omnire.nn import DeformationMLP, positional_encoding
+from omnire.nodes.actors import (
+    ActorNode,
+    ActorPoses,
+    BoxActorConfig,
+    BoxActorNode,
+    frame_blend,
+    track_displacement,
+    train_frame_bracket,
+    transform_instances,
+    usable_track,
+    visible_in_cameras,
+)
+from omnire.nodes.background import BackgroundConfig, init_background_params, lidar_points_for_init
+from omnire.nodes.base import (
+    EnvironmentNode,
+    GaussianNode,
+    GaussianNodeConfig,
+    Node,
+    NodeConfig,
+    NodeContext,
+    NodeOutput,
+    ParamGroup,
+    init_gaussian_params,
+)
+from omnire.pointcloud import colour_from_images, far_shell, knn_scales, points_in_box, to_tensor, voxel_downsample
+from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
 from omnire.registry import (
     CommandSpec,
     DataparserSpec,
@@ -42,13 +75,24 @@ from omnire.registry import (
     Registry,
     SceneWriterSpec,
 )
+from omnire.runconfig import TrainConfig, TrainerConfig
+from omnire.runtime import Reconstruction
+from omnire.trainer import Trainer
 
 __all__ = [
-    "CATEGORIES", "ActorTrack", "CameraSequence", "CommandSpec", "ConfigError", "Dataparser", "DataparserConfig",
-    "DataparserSpec", "HumanPoseSequence", "ImageCache", "ImageReadError", "InstantiateConfig", "LidarSweeps",
-    "LogDataparserConfig", "LossSpec", "MethodSpec", "NodeTypeSpec", "PoseEstimatorSpec", "RasterizerSpec",
-    "Registry", "SceneData", "SceneDataError", "SceneWriterSpec", "UserError", "View", "atomic_write_bytes",
-    "atomic_write_text", "axis_angle_to_rotmat", "bracket", "first_pose_world", "frame_range", "hookimpl",
-    "holdout_split", "interpolate_poses", "interpolate_track", "invert_se3", "quat_multiply", "quat_to_rotmat",
-    "rot_z", "rotmat_to_axis_angle", "rotmat_to_quat", "slerp_rotmats",
+    "CATEGORIES", "GAUSSIAN_KEYS", "MissingFileError", "ActorNode", "ActorPoses", "ActorTrack", "BackgroundConfig", "BoxActorConfig",
+    "BoxActorNode", "Camera", "CameraSequence", "CommandSpec", "ConfigError", "Dataparser", "DataparserConfig",
+    "DataparserSpec", "DeformationMLP", "EnvironmentNode", "GaussianNode", "GaussianNodeConfig", "Gaussians",
+    "HumanPoseSequence", "ImageCache", "ImageReadError", "InstantiateConfig", "LidarSweeps", "LogDataparserConfig",
+    "LossContext", "LossSpec", "MethodConfig", "MethodSpec", "Node", "NodeConfig", "NodeContext", "NodeOutput",
+    "NodeTypeSpec", "ParamGroup", "PoseEstimatorSpec", "RasterInputError", "RasterSettings", "RasterizerSpec",
+    "Reconstruction", "Registry", "RenderOutput", "SceneData", "SceneDataError", "SceneTime", "SceneWriterSpec",
+    "Splats", "TrainConfig", "Trainer", "TrainerConfig", "UserError", "View", "atomic_write_bytes",
+    "atomic_write_text", "axis_angle_to_rotmat", "bracket", "check_raster_inputs", "colour_from_images",
+    "far_shell", "first_pose_world", "frame_blend", "frame_range", "holdout_split", "hookimpl", "in_frustum",
+    "init_background_params", "init_gaussian_params", "interpolate_poses", "interpolate_track", "invert_se3",
+    "knn_scales", "lidar_points_for_init", "points_in_box", "positional_encoding", "quat_multiply",
+    "quat_to_rotmat", "rgb_to_sh0", "rot_z", "rotmat_to_axis_angle", "rotmat_to_quat", "slerp_rotmats",
+    "to_tensor", "track_displacement", "train_frame_bracket", "transform_instances", "usable_track",
+    "visible_in_cameras", "voxel_downsample", "write_png",
 ]

@@ -46,5 +46,4 @@ def omnire_register_commands(registry) -> None:
                                   commands.bench_raster_main))
     registry.register(CommandSpec("bench train", "methods against each other: error against training time",
                                   commands.bench_train_main))
-    registry.register(CommandSpec("bench skip", "cost of what a scene does not need (no humans, absent actors)",
-                                  commands.bench_skip_main))
+

@@ -1,41 +1,118 @@
-"""The camera a view is rendered from, as nodes see it, and frustum tests against it.
+"""The camera type used end to end: dataparser views, the scene graph, nodes, the rasterizer
+contract, the sky's environment lookup and render-time camera edits all take a
+:class:`Camera`.
 
-Nodes get the camera in ``gaussians_at`` so that expensive per-Gaussian work (deformation
-networks) can skip Gaussians the camera cannot see; the rasterizer culls again after
-projection, so a node that ignores the camera renders the same image.
+Conventions (DESIGN.md section 3): OpenCV axes (x right, y down, z forward), camera-to-world
+4x4, pinhole K in pixels at the image size, pixel centres at +0.5.
 """
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
+import numpy as np
 import torch
+
+from omnire.errors import ConfigError
 
 
 @dataclasses.dataclass(frozen=True)
-class PinholeCamera:
-    """K (3,3) pixels, cam_to_world (4,4) OpenCV axes, image size (DESIGN.md section 3)."""
+class Camera:
+    """A pinhole camera at one pose.
+
+    Attributes:
+        K: (3, 3) intrinsics in pixels, pixel centres at +0.5.
+        cam_to_world: (4, 4) OpenCV camera-to-world.
+        width, height: image size in pixels.
+        name: the dataset's camera name ("" for synthetic cameras).
+    """
 
     K: torch.Tensor
     cam_to_world: torch.Tensor
     width: int
     height: int
+    name: str = ""
+    # The exact world-to-camera matrix when the camera was built from one (tests, other tools);
+    # otherwise computed from cam_to_world when asked for.
+    _world_to_cam: Optional[torch.Tensor] = dataclasses.field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if tuple(self.K.shape) != (3, 3) or tuple(self.cam_to_world.shape) != (4, 4):
-            raise ValueError(f"PinholeCamera: K {tuple(self.K.shape)} must be (3, 3) and cam_to_world "
+            raise ValueError(f"Camera: K {tuple(self.K.shape)} must be (3, 3) and cam_to_world "
                              f"{tuple(self.cam_to_world.shape)} must be (4, 4)")
         if self.width <= 0 or self.height <= 0:
-            raise ValueError(f"PinholeCamera: image size {self.width}x{self.height} must be positive")
+            raise ValueError(f"Camera: image size {self.width}x{self.height} must be positive")
 
-    def padded(self, pixels: int) -> "PinholeCamera":
+    @classmethod
+    def from_numpy(cls, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int, name: str = "",
+                   device: torch.device | str = "cpu") -> "Camera":
+        """A float32 camera from numpy K (3, 3) and cam_to_world (4, 4)."""
+        return cls(torch.as_tensor(K, dtype=torch.float32, device=device),
+                   torch.as_tensor(cam_to_world, dtype=torch.float32, device=device), int(width), int(height), name)
+
+    @classmethod
+    def from_world_to_cam(cls, world_to_cam: torch.Tensor, K: torch.Tensor, width: int, height: int,
+                          name: str = "") -> "Camera":
+        """A camera given by its world-to-camera matrix (4, 4), kept exactly."""
+        return cls(K, torch.linalg.inv(world_to_cam), int(width), int(height), name, world_to_cam)
+
+    @property
+    def world_to_cam(self) -> torch.Tensor:
+        """(4, 4) world-to-camera (the rasterizer's view matrix)."""
+        return self._world_to_cam if self._world_to_cam is not None else torch.linalg.inv(self.cam_to_world)
+
+    @property
+    def center(self) -> torch.Tensor:
+        """(3,) camera position in the world."""
+        return self.cam_to_world[:3, 3]
+
+    @property
+    def device(self) -> torch.device:
+        return self.cam_to_world.device
+
+    def with_pose(self, cam_to_world: torch.Tensor) -> "Camera":
+        """The same lens at another pose (4, 4)."""
+        return Camera(self.K, cam_to_world.to(self.cam_to_world), self.width, self.height, self.name)
+
+    def shifted(self, offset: "torch.Tensor | tuple[float, float, float]") -> "Camera":
+        """Moved by ``offset`` (3,) metres in its own axes (x right, y down, z forward)."""
+        offset = torch.as_tensor(offset, dtype=self.cam_to_world.dtype, device=self.device)
+        c2w = self.cam_to_world.clone()
+        c2w[:3, 3] += c2w[:3, :3] @ offset
+        return self.with_pose(c2w)
+
+    def padded(self, pixels: int) -> "Camera":
         """The same camera with ``pixels`` more image on every side."""
         K = self.K.clone()
         K[0, 2] += pixels
         K[1, 2] += pixels
-        return PinholeCamera(K, self.cam_to_world, self.width + 2 * pixels, self.height + 2 * pixels)
+        return Camera(K, self.cam_to_world, self.width + 2 * pixels, self.height + 2 * pixels, self.name,
+                      self._world_to_cam)
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same camera rendering ``width`` x ``height`` pixels (K scaled per axis)."""
+        if width <= 0 or height <= 0:
+            raise ConfigError(f"image size {width}x{height}: both must be positive")
+        K = self.K.clone()
+        K[0] *= width / self.width
+        K[1] *= height / self.height
+        return Camera(K, self.cam_to_world, int(width), int(height), self.name, self._world_to_cam)
+
+    def to(self, device: torch.device | str) -> "Camera":
+        w2c = None if self._world_to_cam is None else self._world_to_cam.to(device)
+        return Camera(self.K.to(device), self.cam_to_world.to(device), self.width, self.height, self.name, w2c)
+
+    def pixel_directions(self) -> torch.Tensor:
+        """(H, W, 3) unit world directions of the rays through the pixel centres."""
+        K = self.K
+        v, u = torch.meshgrid(torch.arange(self.height, device=K.device, dtype=K.dtype) + 0.5,
+                              torch.arange(self.width, device=K.device, dtype=K.dtype) + 0.5, indexing="ij")
+        d = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)
+        d = d @ self.cam_to_world[:3, :3].T.to(K.dtype)
+        return d / d.norm(dim=-1, keepdim=True)
 
 
-def in_frustum(points: torch.Tensor, camera: PinholeCamera, margin: "float | torch.Tensor") -> torch.Tensor:
+def in_frustum(points: torch.Tensor, camera: Camera, margin: "float | torch.Tensor") -> torch.Tensor:
     """(N,) bool: world ``points`` (N,3) within ``margin`` metres (a float, or (N,) per
     point, e.g. to add each Gaussian's extent) of the camera's viewing frustum (the pyramid
     through the image borders, no near or far plane).

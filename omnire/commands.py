@@ -1,103 +1,36 @@
-"""The core's commands: train, eval, render, plugins, bench."""
+"""The core's commands: train, eval, render, plugins, bench raster / train / skip.
+
+User errors (:class:`~omnire.errors.UserError`) propagate to the CLI, which prints them as
+one line; anything else is a bug and keeps its traceback.
+"""
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
-from typing import Annotated, Literal, Optional, Union
+from typing import Literal, Optional
 
 import tyro
-from rich.console import Console
 from rich.table import Table
 
-from omnire.trainer import TrainConfig, Trainer, TrainerConfig, TrainingError, find_checkpoint
-
-# Errors that mean "bad input": print the message (it names the file/field) and exit 2.
-from omnire.data.images import ImageReadError
-from omnire.data.scene import SceneDataError
-from omnire.model import ModelBuildError
-from omnire.registry import RegistryError
-
-USER_ERRORS = (SceneDataError, ImageReadError, FileNotFoundError, NotADirectoryError, RegistryError,
-               ModelBuildError, TrainingError, ValueError)
-
-
-def _user_error(exc: Exception) -> int:
-    Console(stderr=True).print(f"[red]error:[/] {exc}", highlight=False)
-    return 2
-
-
-def train_cli_type(plugins):
-    """Union over methods of dataclasses (dataparser subcommand, method, trainer), built
-    from the registries at call time."""
-    dp_types = []
-    for spec in plugins.dataparsers:
-        default = spec.config_factory()
-        dp_types.append(Annotated[type(default), tyro.conf.subcommand(spec.name, default=default,
-                                                                       description=spec.description)])
-    if not dp_types:
-        raise RegistryError("no dataparser is installed (e.g. pip install -e dataparsers/pandaset)")
-    dp_union = _subcommand_union(dp_types)
-    method_types = []
-    for spec in plugins.methods:
-        default = spec.config_factory()
-        cls = dataclasses.make_dataclass(
-            f"Train_{spec.name}",
-            [
-                ("dataparser", tyro.conf.OmitArgPrefixes[dp_union]),
-                ("method", type(default), dataclasses.field(default_factory=spec.config_factory)),
-                ("trainer", TrainerConfig, dataclasses.field(default_factory=TrainerConfig)),
-            ],
-        )
-        cls._method_name = spec.name
-        method_types.append(Annotated[cls, tyro.conf.subcommand(spec.name, description=spec.description)])
-    if not method_types:
-        raise RegistryError("no method is registered")
-    return _subcommand_union(method_types)
-
-
-def _subcommand_union(types: list):
-    # A Union needs two members; a suppressed None keeps a single entry a subcommand.
-    return Union[tuple(types) + (Annotated[None, tyro.conf.Suppress],)]
-
-
-def parse_train_args(argv: list[str], plugins) -> TrainConfig:
-    parsed = tyro.cli(
-        train_cli_type(plugins), args=argv, prog="omnire train",
-        config=(tyro.conf.OmitSubcommandPrefixes, tyro.conf.CascadeSubcommandArgs, tyro.conf.SuppressFixed),
-    )
-    dp_name = next(s.name for s in plugins.dataparsers if type(s.config_factory()) is type(parsed.dataparser))
-    return TrainConfig(type(parsed)._method_name, dp_name, parsed.method, parsed.dataparser, parsed.trainer)
+from omnire.errors import ConfigError
+from omnire.runconfig import parse_train_args
+from omnire.ui import output_console
 
 
 def train_main(argv: list[str], plugins) -> int:
-    config = parse_train_args(argv, plugins)
-    console = Console()
-    try:
-        trainer = Trainer(config, plugins, argv=argv)
-        console.print(f"run directory: {trainer.run_dir}  rasterizer: {trainer.rasterizer.name}  "
-                      f"gaussians: {trainer.model.num_gaussians()}  nodes: {list(trainer.model.nodes)}")
-        result = trainer.train()
-    except USER_ERRORS as exc:
-        return _user_error(exc)
     from omnire.evaluation import format_table
+    from omnire.trainer import Trainer
 
+    config = parse_train_args(argv, plugins)
+    console = output_console()
+    trainer = Trainer(config, plugins, argv=argv)
+    console.print(f"run directory: {trainer.run_dir}  rasterizer: {trainer.model.rasterizer.name}  "
+                  f"gaussians: {trainer.model.num_gaussians()}  nodes: {list(trainer.model.nodes)}")
+    result = trainer.train()
     console.print(format_table(result, f"{config.method_name} on {trainer.scene.name} at step {trainer.step}"))
+    for warning in result.get("warnings", []):
+        console.print(f"[yellow]warning:[/] {warning}")
     return 0
-
-
-def trainer_from_run(run_dir: Path, plugins, checkpoint: Optional[Path] = None) -> Trainer:
-    """Rebuild the trainer of a run directory from its recorded arguments and load a checkpoint."""
-    run_dir = Path(run_dir)
-    info_path = run_dir / "run.json"
-    if not info_path.is_file():
-        raise FileNotFoundError(f"{run_dir}: not a run directory (no run.json)")
-    info = json.loads(info_path.read_text())
-    config = parse_train_args(info["argv"], plugins)
-    config.trainer.resume = None
-    trainer = Trainer(config, plugins, argv=info["argv"], run_dir=run_dir)
-    trainer.load_checkpoint(find_checkpoint(checkpoint or run_dir))
-    return trainer
 
 
 @dataclasses.dataclass
@@ -107,19 +40,25 @@ class EvalArgs:
     run_dir: tyro.conf.Positional[Path]
     """Run directory written by omnire train."""
     checkpoint: Optional[Path] = None
-    """Checkpoint file (default: the latest in the run directory)."""
+    """Checkpoint file (default: the newest intact one in the run directory)."""
+    train_views: int = 24
+    """Training views evaluated for the reconstruction metrics (evenly spaced; 0 = all)."""
 
 
 def eval_main(argv: list[str], plugins) -> int:
-    args = tyro.cli(EvalArgs, args=argv, prog="omnire eval")
-    try:
-        trainer = trainer_from_run(args.run_dir, plugins, args.checkpoint)
-        result = trainer.evaluate()
-    except USER_ERRORS as exc:
-        return _user_error(exc)
-    from omnire.evaluation import format_table
+    import torch
 
-    Console().print(format_table(result, f"{trainer.config.method_name} at step {trainer.step}"))
+    from omnire.evaluation import evaluate, format_table
+    from omnire.observations import Observations
+    from omnire.runtime import Reconstruction
+
+    args = tyro.cli(EvalArgs, args=argv, prog="omnire eval")
+    recon = Reconstruction.from_run(args.run_dir, plugins, args.checkpoint)
+    scene = recon.scene
+    with torch.no_grad():
+        result = evaluate(recon, Observations(scene, recon.device), scene.views(scene.train_frames),
+                          scene.views(scene.test_frames), args.train_views)
+    output_console().print(format_table(result, f"{recon.run_info.method} at step {recon.step}"))
     return 0
 
 
@@ -149,44 +88,38 @@ def render_main(argv: list[str], plugins) -> int:
 
     from omnire.data.scene import View
     from omnire.io.images import write_png
+    from omnire.runtime import Reconstruction
 
     args = tyro.cli(RenderArgs, args=argv, prog="omnire render")
-    try:
-        trainer = trainer_from_run(args.run_dir, plugins)
-        scene = trainer.scene
-        cams = [scene.camera_index(n) for n in args.cameras] if args.cameras else list(range(len(scene.cameras)))
-        if args.frames:
-            bad = [f for f in args.frames if not 0 <= f < scene.num_frames]
-            if bad:
-                raise ValueError(f"--frames {bad}: outside the loaded range 0..{scene.num_frames - 1}")
-            frames = list(args.frames)
-        else:
-            frames = {"test": scene.test_frames, "train": scene.train_frames,
-                      "all": np.arange(scene.num_frames)}[args.split].tolist()
-    except USER_ERRORS as exc:
-        return _user_error(exc)
+    recon = Reconstruction.from_run(args.run_dir, plugins)
+    scene = recon.scene
+    cams = [scene.camera_index(n) for n in args.cameras] if args.cameras else list(range(len(scene.cameras)))
+    if args.frames:
+        bad = [f for f in args.frames if not 0 <= f < scene.num_frames]
+        if bad:
+            raise ConfigError(f"--frames {bad}: outside the loaded range 0..{scene.num_frames - 1}")
+        frames = list(args.frames)
+    else:
+        frames = {"test": scene.test_frames, "train": scene.train_frames,
+                  "all": np.arange(scene.num_frames)}[args.split].tolist()
     out_dir = args.output or Path(args.run_dir) / "renders"
-    shift = torch.tensor(args.shift, dtype=torch.float32)
     count = 0
     with torch.no_grad():
         for f in frames:
             for c in cams:
                 view = View(c, int(f))
-                K, c2w, W, H = trainer.model.camera(view)
-                c2w = c2w.clone()
-                c2w[:3, 3] += c2w[:3, :3] @ shift
-                result = trainer.model.render(view, trainer.sh_degree(), camera_override=(K, c2w, W, H))
+                result = recon.render(recon.camera(view).shifted(args.shift), recon.time(view.frame))
                 name = f"{scene.source_frames[f]:03d}_{scene.cameras[c].name}"
                 write_png(out_dir / f"{name}.png", result.rgb)
                 if args.depth:
                     write_png(out_dir / f"{name}_depth.png", result.depth * 1000.0, bits=16)
                 count += 1
-    Console().print(f"wrote {count} images to {out_dir}")
+    output_console().print(f"wrote {count} images to {out_dir}")
     return 0
 
 
 def plugins_main(argv: list[str], plugins) -> int:
-    console = Console()
+    console = output_console()
     for attr, registry in plugins.registries().items():
         table = Table(title=f"{attr.replace('_', ' ')}")
         for col in ("name", "description", "distribution", "version"):
@@ -216,8 +149,3 @@ def bench_train_main(argv: list[str], plugins) -> int:
 
     return int(train.main(argv, plugins) or 0)
 
-
-def bench_skip_main(argv: list[str], plugins) -> int:
-    from omnire.bench import skip
-
-    return int(skip.main(argv, plugins) or 0)

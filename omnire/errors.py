@@ -14,3 +14,8 @@ class UserError(Exception):
 
 class ConfigError(UserError):
     """A command-line flag or config value is invalid (the message names the field)."""
+
+
+class MissingFileError(UserError, FileNotFoundError):
+    """A file or directory the user pointed at (or that a dataset must hold) does not exist;
+    the message names it and what it should contain."""

@@ -39,10 +39,14 @@ def backproject(z: torch.Tensor, pixels: torch.Tensor, width: int, K: torch.Tens
 
 
 @torch.no_grad()
-def evaluate_views(trainer, views: list[View], with_copy_baseline: bool, max_depth: float = 80.0) -> dict:
+def evaluate_views(recon, observations, views: list[View], with_copy_baseline: bool, max_depth: float = 80.0) -> dict:
     """PSNR/SSIM per region (full image, human mask, vehicle mask), depth RMSE and Chamfer
-    distance at LiDAR pixels, render speed; with the copy-nearest-frame baseline."""
+    distance at LiDAR pixels, render speed; with the copy-nearest-frame baseline.
+
+    ``recon``: the :class:`~omnire.runtime.Reconstruction`; ``observations``: the recorded
+    data (:class:`~omnire.observations.Observations`) of its scene."""
     acc: dict[str, list[float]] = {}
+    scene = recon.scene
 
     def add(key: str, value: float) -> None:
         acc.setdefault(key, []).append(value)
@@ -50,13 +54,13 @@ def evaluate_views(trainer, views: list[View], with_copy_baseline: bool, max_dep
     t_render = 0.0
     for view in views:
         t0 = time.perf_counter()
-        result = trainer.model.render(view, trainer.sh_degree())
+        result = recon.render_view(view)
         t_render += time.perf_counter() - t0
-        target = trainer.target(view)
-        masks = {"full": None, "human": trainer.dynamic_masks.get(view, "human"),
-                 "vehicle": trainer.dynamic_masks.get(view, "vehicle")}
-        near = nearest_train_frame(view.frame, trainer.scene.train_frames) if with_copy_baseline else None
-        other = trainer.target(View(view.camera, near)) if with_copy_baseline else None
+        target = observations.image(view)
+        masks = {"full": None, "human": observations.dynamic_mask(view, "human"),
+                 "vehicle": observations.dynamic_mask(view, "vehicle")}
+        near = nearest_train_frame(view.frame, scene.train_frames) if with_copy_baseline else None
+        other = observations.image(View(view.camera, near)) if with_copy_baseline else None
         for region, mask in masks.items():
             if mask is not None and not bool((mask > 0.5).any()):
                 continue  # region absent from this image: not counted
@@ -65,16 +69,16 @@ def evaluate_views(trainer, views: list[View], with_copy_baseline: bool, max_dep
             if other is not None:
                 add(f"copy_{region}_psnr", psnr(other, target, mask))
                 add(f"copy_{region}_ssim", ssim(other, target, mask))
-        lidar = trainer.lidar.get(view)
+        lidar = observations.lidar(view)
         if lidar is not None:
             pix, z = lidar
             add("depth_rmse", depth_errors(result.depth, pix, z, max_depth)[0])
             keep = (z < max_depth) & (result.alpha.reshape(-1)[pix] > 0.5)
             if bool(keep.any()):
-                K, c2w, _, _ = trainer.model.camera(view)
+                camera = recon.camera(view)
                 W = result.depth.shape[1]
-                pred = backproject(result.depth.reshape(-1)[pix[keep]], pix[keep], W, K, c2w)
-                gt = backproject(z[keep], pix[keep], W, K, c2w)
+                pred = backproject(result.depth.reshape(-1)[pix[keep]], pix[keep], W, camera.K, camera.cam_to_world)
+                gt = backproject(z[keep], pix[keep], W, camera.K, camera.cam_to_world)
                 add("depth_chamfer", chamfer_distance(pred, gt))
     out = {"views": len(views), "render_fps": len(views) / t_render if t_render > 0 else float("nan")}
     out.update({k: _mean(v) for k, v in sorted(acc.items())})
@@ -82,19 +86,19 @@ def evaluate_views(trainer, views: list[View], with_copy_baseline: bool, max_dep
     return out
 
 
-def evaluate_model(trainer) -> dict:
-    train_views = trainer.train_views
-    limit = trainer.config.trainer.eval_train_views
-    if limit and len(train_views) > limit:
-        idx = np.linspace(0, len(train_views) - 1, limit).round().astype(int)
+def evaluate(recon, observations, train_views: list[View], test_views: list[View], train_view_limit: int = 0) -> dict:
+    """Reconstruction metrics on (at most ``train_view_limit``, evenly spaced; 0 = all)
+    training views and novel-view metrics on the held-out views."""
+    if train_view_limit and len(train_views) > train_view_limit:
+        idx = np.linspace(0, len(train_views) - 1, train_view_limit).round().astype(int)
         train_views = [train_views[i] for i in idx]
     result = {
-        "step": trainer.step,
-        "num_gaussians": trainer.model.num_gaussians(),
-        "reconstruction": evaluate_views(trainer, train_views, with_copy_baseline=False),
+        "step": recon.step,
+        "num_gaussians": recon.num_gaussians(),
+        "reconstruction": evaluate_views(recon, observations, train_views, with_copy_baseline=False),
     }
-    if trainer.test_views:
-        result["novel_view"] = evaluate_views(trainer, trainer.test_views, with_copy_baseline=True)
+    if test_views:
+        result["novel_view"] = evaluate_views(recon, observations, test_views, with_copy_baseline=True)
     return result
 
 

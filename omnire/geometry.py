@@ -26,7 +26,7 @@ def numpy_compatible(fn: F) -> F:
             return fn(*args, **kwargs)
 
         def to_t(a: Any) -> Any:
-            return torch.from_numpy(np.asarray(a, dtype=np.float64)) if isinstance(a, np.ndarray) else a
+            return torch.from_numpy(np.array(a, dtype=np.float64)) if isinstance(a, np.ndarray) else a
 
         out = fn(*(to_t(a) for a in args), **{k: to_t(v) for k, v in kwargs.items()})
         if isinstance(out, tuple):

@@ -1,8 +1,8 @@
-"""The scene graph: nodes built from a method config, rendered per view.
+"""The scene graph: nodes built from a method config, rendered per (camera, moment).
 
-Per view (camera c, frame t): every Gaussian node present at t returns its world-space
-Gaussians -> concatenate -> colours from SH at the camera centre -> rasterize -> composite
-the environment (sky) node under the Gaussians: C = C_gs + (1 - O_gs) C_env.
+Per view: every Gaussian node present at the moment returns its world-space Gaussians ->
+concatenate -> colours from SH at the camera centre -> rasterize -> composite the
+environment (sky) node under the Gaussians: C = C_gs + (1 - O_gs) C_env.
 """
 from __future__ import annotations
 
@@ -13,21 +13,23 @@ import numpy as np
 import torch
 from torch import nn
 
-from omnire.camera import PinholeCamera, in_frustum
-from omnire.data.scene import SceneData, View
+from omnire.camera import Camera, in_frustum
+from omnire.data.scene import SceneData, SceneTime
+from omnire.errors import UserError
 from omnire.gaussians import Gaussians
-from omnire.nodes.base import Node, NodeContext
-from omnire.rasterization import Rasterizer
+from omnire.nodes.base import EnvironmentNode, Node, NodeContext, NodeOutput
+from omnire.rasterization import Rasterizer, RasterSettings, Splats
 from omnire.strategy import NodeSlice
 
 
-class ModelBuildError(ValueError):
+class ModelBuildError(UserError):
     """The method cannot be assembled (unknown node type, ...)."""
 
 
 @dataclasses.dataclass
 class RenderResult:
-    """Rendered view. rgb/depth/alpha are (H, W, C); ``slices`` map rendered rows to nodes."""
+    """A rendered view. rgb/depth/alpha are (H, W, C); ``slices`` map rendered rows to
+    nodes; ``outputs`` hold what each node produced (for its regulariser)."""
 
     rgb: torch.Tensor
     depth: torch.Tensor
@@ -36,13 +38,14 @@ class RenderResult:
     radii: torch.Tensor
     slices: list[NodeSlice]
     num_gaussians: int
+    outputs: dict[str, NodeOutput] = dataclasses.field(default_factory=dict)
 
 
 CULL_SIGMAS = 4.0
 CULL_PAD_PIXELS = 3
 
 
-def cull_to_frustum(g: Gaussians, rows: Optional[torch.Tensor], camera: PinholeCamera
+def cull_to_frustum(g: Gaussians, rows: Optional[torch.Tensor], camera: Camera
                     ) -> tuple[Gaussians, Optional[torch.Tensor]]:
     """Keep the Gaussians whose ``CULL_SIGMAS``-sigma sphere reaches the camera frustum,
     widened by ``CULL_PAD_PIXELS``; no other can be drawn, so the image is unchanged.
@@ -82,91 +85,120 @@ def assign_tracks(scene: SceneData, node_specs: dict[str, Any]) -> dict[str, lis
     return assigned
 
 
+def enabled_node_specs(method, node_registry) -> dict[str, Any]:
+    """The node-type specs a method enables (its nodes minus ``--method.disable``)."""
+    unknown = [n for n in method.disable if n not in method.nodes]
+    if unknown:
+        raise ModelBuildError(f"--method.disable {unknown}: not node types of this method ({list(method.nodes)})")
+    specs = {}
+    for name in method.nodes:
+        if name in method.disable:
+            continue
+        if name not in node_registry:
+            raise ModelBuildError(f"method uses node type {name!r}, which no installed plugin registers; "
+                                  f"registered: {node_registry.names()}")
+        specs[name] = node_registry.get(name)
+    return specs
+
+
 class SceneModel(nn.Module):
-    def __init__(self, method, scene: SceneData, node_registry, images, rasterizer: Rasterizer,
-                 device: torch.device, seed: int = 0) -> None:
+    """The nodes of one scene, and how a view of them is rendered.
+
+    Args:
+        method: the :class:`~omnire.method.MethodConfig`.
+        scene: the scene (prepared: see :meth:`prepare`).
+        specs: node-type specs by name (:func:`enabled_node_specs`).
+        assignment: track ids per node type; None assigns the scene's tracks now.
+        images: ImageCache for data-driven initialisation; None when restoring a checkpoint.
+        rasterizer, device, seed: as named.
+        restoring: build empty nodes to receive a checkpoint (no LiDAR or image reading).
+    """
+
+    def __init__(self, method, scene: SceneData, specs: dict[str, Any], images, rasterizer: Rasterizer,
+                 device: torch.device, seed: int = 0, assignment: Optional[dict[str, list[str]]] = None,
+                 restoring: bool = False) -> None:
         super().__init__()
         self.method = method
         self.scene = scene
         self.rasterizer = rasterizer
         self.device = device
-        unknown = [n for n in method.disable if n not in method.nodes]
-        if unknown:
-            raise ModelBuildError(f"--method.disable {unknown}: not node types of this method ({list(method.nodes)})")
-        enabled = {n: c for n, c in method.nodes.items() if n not in method.disable}
-        specs = {}
-        for name in enabled:
-            if name not in node_registry:
-                raise ModelBuildError(f"method uses node type {name!r}, which no installed plugin registers; "
-                                      f"registered: {node_registry.names()}")
-            specs[name] = node_registry.get(name)
-        assigned = assign_tracks(scene, specs)
+        if assignment is None:
+            assigned = assign_tracks(scene, specs)
+        else:
+            by_id = {t.track_id: t for t in scene.tracks}
+            missing = sorted({i for ids in assignment.values() for i in ids} - set(by_id))
+            if missing:
+                raise ModelBuildError(f"the recorded node assignment names tracks the scene does not have: "
+                                      f"{missing[:5]}")
+            assigned = {name: [by_id[i] for i in assignment.get(name, [])] for name in specs}
         self.assignment = {name: [t.track_id for t in tracks] for name, tracks in assigned.items()}
-        actor_tracks = [t for name, tracks in assigned.items() for t in tracks]
+        actor_tracks = [t for tracks in assigned.values() for t in tracks]
         generator = torch.Generator().manual_seed(seed)
         radius = scene_radius(scene)
         self.scene_radius = radius
         nodes = {}
-        for name, cfg in enabled.items():
-            is_actor_type = bool(specs[name].categories)
+        for name, spec in specs.items():
+            is_actor_type = bool(spec.categories)
             if is_actor_type and not assigned[name]:
                 continue  # skip what the scene does not need: no actors, no node
             ctx = NodeContext(scene, images, radius, device, generator,
-                              excluded_tracks=[] if is_actor_type else actor_tracks)
-            nodes[name] = cfg.setup(context=ctx, tracks=assigned[name])
+                              excluded_tracks=[] if is_actor_type else actor_tracks, restoring=restoring)
+            nodes[name] = method.nodes[name].setup(context=ctx, tracks=assigned[name])
         self.nodes = nn.ModuleDict(nodes)
-        self._K = [torch.as_tensor(c.intrinsics, dtype=torch.float32, device=device) for c in scene.cameras]
-        self._c2w = [torch.as_tensor(c.cam_to_world, dtype=torch.float32, device=device) for c in scene.cameras]
-        self._bg = torch.tensor(method.background_color, dtype=torch.float32, device=device)
+        self._background = torch.tensor(method.background_color, dtype=torch.float32, device=device)
 
     def gaussian_nodes(self) -> dict[str, Node]:
-        return {n: m for n, m in self.nodes.items() if not m.is_environment}
+        return {n: m for n, m in self.nodes.items() if not isinstance(m, EnvironmentNode)}
+
+    def environment_nodes(self) -> dict[str, EnvironmentNode]:
+        return {n: m for n, m in self.nodes.items() if isinstance(m, EnvironmentNode)}
 
     def num_gaussians(self) -> int:
         return sum(m.num_gaussians for m in self.gaussian_nodes().values())
 
-    def camera(self, view: View) -> tuple[torch.Tensor, torch.Tensor, int, int]:
-        """(K (3,3), cam_to_world (4,4), width, height) of a view."""
-        cam = self.scene.cameras[view.camera]
-        return self._K[view.camera], self._c2w[view.camera][view.frame], cam.width, cam.height
-
-    def render(self, view: View, sh_degree: int = 3, camera_override: Optional[tuple] = None,
-               time_override: Optional[float] = None, step: Optional[int] = None) -> RenderResult:
-        """Render ``view``. ``camera_override`` = (K, cam_to_world, width, height) renders the
-        scene at the view's frame from another camera (novel trajectories). ``step`` is the
-        training step (None: the trained model, e.g. for evaluation)."""
-        K, c2w, W, H = camera_override or self.camera(view)
-        frame = view.frame
-        time = float(self.scene.frame_timestamps[frame]) if time_override is None else time_override
-        camera = PinholeCamera(K, c2w, W, H)
-        parts, slices, start = [], [], 0
+    def gather(self, camera: Optional[Camera], t: SceneTime, step: Optional[int] = None,
+               hidden: frozenset[str] = frozenset()) -> tuple[Optional[Gaussians], list[NodeSlice], dict[str, NodeOutput]]:
+        """World-space Gaussians of every node present at ``t`` (culled to ``camera`` when
+        the method says so and a camera is given), the node slices of the concatenation and
+        each node's output. Nodes named in ``hidden`` are left out."""
+        parts, slices, outputs, start = [], [], {}, 0
         for name, node in self.gaussian_nodes().items():
-            out = node.gaussians_at(frame, time, step, camera=camera)
+            if name in hidden:
+                continue
+            out = node.gaussians_at(t, camera, step)
             if out is None:
                 continue
-            g, rows = out
-            if self.method.cull_to_view and len(g):
+            outputs[name] = out
+            g, rows = out.gaussians, out.rows
+            if self.method.cull_to_view and camera is not None and len(g):
                 g, rows = cull_to_frustum(g, rows, camera)
             parts.append(g)
             slices.append(NodeSlice(name, start, start + len(g), rows))
             start += len(g)
-        env = [m for m in self.nodes.values() if m.is_environment]
-        background = None if env else self._bg
-        viewmat = torch.linalg.inv(c2w)
-        if parts:
-            g = Gaussians.cat(parts)
-            colors = g.colors(c2w[:3, 3], sh_degree)
-            out = self.rasterizer.rasterize(
-                g.means, g.quats, g.activated_scales, g.activated_opacities, colors, viewmat, K, W, H,
-                background=background,
-            )
+        return (Gaussians.cat(parts) if parts else None), slices, outputs
+
+    def render(self, camera: Camera, t: SceneTime, sh_degree: int = 3, step: Optional[int] = None,
+               hidden: frozenset[str] = frozenset()) -> RenderResult:
+        """Render the scene at moment ``t`` through ``camera``. ``step`` is the training
+        step (None: the trained model, e.g. for evaluation and rendering); nodes in
+        ``hidden`` are not drawn (e.g. the sky, for renders of the Gaussians alone)."""
+        g, slices, outputs = self.gather(camera, t, step, hidden)
+        env = {n: m for n, m in self.environment_nodes().items() if n not in hidden}
+        background = None if env else self._background
+        W, H = camera.width, camera.height
+        if g is not None:
+            splats = Splats(g.means, g.quats, g.activated_scales, g.activated_opacities,
+                            g.colors(camera.center, sh_degree))
+            out = self.rasterizer.rasterize(splats, camera, RasterSettings(background=background))
             rgb, depth, alpha, absgrad, radii = out.rgb, out.depth, out.alpha, out.absgrad2d, out.radii
+            n = len(g)
         else:
             rgb = (background if background is not None else torch.zeros(3, device=self.device)).expand(H, W, 3)
             depth = torch.zeros(H, W, 1, device=self.device)
             alpha = torch.zeros(H, W, 1, device=self.device)
             absgrad = torch.zeros(0, 2, device=self.device)
             radii = torch.zeros(0, dtype=torch.int32, device=self.device)
-        for node in env:
-            rgb = rgb + (1.0 - alpha) * node.render_environment(K, c2w, W, H, frame, time)
-        return RenderResult(rgb, depth, alpha, absgrad, radii, slices, start)
+            n = 0
+        for node in env.values():
+            rgb = rgb + (1.0 - alpha) * node.render_environment(camera, t)
+        return RenderResult(rgb, depth, alpha, absgrad, radii, slices, n, outputs)

@@ -1,89 +1,76 @@
-"""Training loop, evaluation, checkpoints.
+"""Training: a :class:`~omnire.runtime.Reconstruction` plus optimisation, evaluation and
+checkpoints, in a run directory (:mod:`omnire.rundir`).
 
-A run directory holds ``run.json`` (the exact CLI arguments, so ``omnire eval`` and
-``omnire render`` rebuild the same configuration without unpickling anything),
-``metrics.jsonl`` (one JSON object per logged step / evaluation), ``checkpoints/`` and
-``eval/``. Checkpoints hold the model, optimiser moments, densification state and every
-RNG state, so a resumed run continues exactly like an uninterrupted one.
+Checkpoints hold the model, optimiser moments, densification state and every RNG state, so
+a resumed run continues exactly like an uninterrupted one. Ctrl-C (SIGINT) or SIGTERM
+writes a checkpoint at the current step and stops with :class:`TrainingInterrupted`.
 """
 from __future__ import annotations
 
-import dataclasses
+import io
 import json
+import logging
 import math
+import signal
 import time
 from pathlib import Path
-from typing import Any, Optional
+from typing import Optional
 
 import torch
 
-from omnire.data.images import ImageCache
+from omnire.config import to_dict
 from omnire.data.scene import SceneData, View
+from omnire.errors import ConfigError, UserError
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
-from omnire.lidar import LidarDepthTargets
 from omnire.losses import LossContext
-from omnire.masks import DynamicMasks, SkyMasks
-from omnire.method import MethodConfig
-from omnire.model import SceneModel
+from omnire.observations import Observations
 from omnire.optim import Optimizers
-from omnire.rasterization import select_rasterizer
+from omnire.rundir import RunDirectory, RunDirectoryError, RunInfo, find_checkpoint, step_of
+from omnire.runconfig import TrainConfig, TrainerConfig, absolute_argv
+from omnire.runtime import Reconstruction, parse_recorded_args
 from omnire.strategy import AbsGradStrategy
 
+__all__ = ["TrainConfig", "Trainer", "TrainerConfig", "TrainingError", "TrainingInterrupted"]
 
-class TrainingError(RuntimeError):
+log = logging.getLogger("omnire.trainer")
+
+DIVERGENCE_PSNR = 12.0
+"""Training PSNR (dB, over the last logged window) below which a run is reported as diverged."""
+
+
+class TrainingError(UserError):
     """Training cannot continue (non-finite loss or parameters); nothing bad was saved."""
 
 
-@dataclasses.dataclass
-class TrainerConfig:
-    """Loop, logging, evaluation and checkpoint settings."""
-
-    max_steps: int = 3000
-    """Training iterations (one image per step); learning-rate schedules span them."""
-    max_seconds: float = 0.0
-    """Stop earlier once training (not evaluation) has taken this many seconds (0: no limit)."""
-    eval_every: int = 0
-    """Evaluate on the held-out frames every N steps (0: only at the end)."""
-    log_every: int = 25
-    """Write training metrics every N steps."""
-    checkpoint_every: int = 1000
-    """Save a checkpoint every N steps (and always at the end)."""
-    output_dir: Path = Path("outputs")
-    """Where run directories are created."""
-    run_name: Optional[str] = None
-    """Run directory name (default: <scene>-<method>-<time>)."""
-    seed: int = 0
-    """Seed for initialisation, view sampling and densification."""
-    threads: int = 0
-    """torch CPU threads (0: torch's default)."""
-    device: str = "cpu"
-    """Torch device (cpu or cuda)."""
-    resume: Optional[Path] = None
-    """Resume from a checkpoint file or the latest checkpoint of a run directory."""
-    eval_train_views: int = 24
-    """Training views evaluated for the reconstruction metrics (evenly spaced; 0 = all)."""
-    progress: bool = True
-    """Show the rich progress bar."""
-
-
-@dataclasses.dataclass
-class TrainConfig:
-    """What ``omnire train <method> <dataparser>`` builds."""
-
-    method_name: str
-    dataparser_name: str
-    method: MethodConfig
-    dataparser: Any
-    trainer: TrainerConfig
+class TrainingInterrupted(UserError):
+    """Training was stopped by a signal; a checkpoint of the current step was written."""
 
 
 def psnr_from_mse(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-10))
 
 
+class _RecordBuffer(logging.Handler):
+    """Keeps log records emitted before the run's log file exists."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
 class Trainer:
+    """Trains ``config`` on ``scene`` (default: parsed by the config's dataparser).
+
+    With ``persist=False`` nothing is written (benchmarks step a trainer in memory); otherwise
+    the run directory is created (refused when it already holds a run) or, with
+    ``--trainer.resume``, reopened and continued from its newest intact checkpoint.
+    """
+
     def __init__(self, config: TrainConfig, plugins, argv: Optional[list[str]] = None,
-                 run_dir: Optional[Path] = None, scene: Optional[SceneData] = None) -> None:
+                 scene: Optional[SceneData] = None, persist: bool = True) -> None:
         self.config = config
         self.plugins = plugins
         tc = config.trainer
@@ -91,76 +78,129 @@ class Trainer:
             torch.set_num_threads(tc.threads)
         self.device = torch.device(tc.device)
         torch.manual_seed(tc.seed)
-        self.scene = scene if scene is not None else config.dataparser.setup().parse().validate()
-        self.images = ImageCache()
-        self.rasterizer = select_rasterizer(plugins.rasterizers, config.method.rasterizer, self.device)
+        self.argv = list(argv) if argv is not None else None
+        self.persist = persist
+        resume_state = None
+        self.run: Optional[RunDirectory] = None
+        if persist:
+            self.run, resume_state = self._open_run_directory(scene)
+        buffer = _RecordBuffer()
+        logging.getLogger("omnire").addHandler(buffer)
+        logging.getLogger("omnire").setLevel(logging.INFO)
+        try:
+            self.scene = scene if scene is not None else config.dataparser.setup().parse().validate()
+            self.observations = Observations(self.scene, self.device)
+            self.recon = Reconstruction.build(config.method, self.scene, plugins, self.device,
+                                              self.observations.images, seed=tc.seed)
+        finally:
+            logging.getLogger("omnire").removeHandler(buffer)
+        self._early_records = buffer.records
         self.losses = {}
         for name, weight in config.method.loss_weights.items():
             if weight != 0:
                 self.losses[name] = (plugins.losses.get(name).fn, weight)
-        self.model = SceneModel(config.method, self.scene, plugins.node_types, self.images, self.rasterizer,
-                                self.device, seed=tc.seed)
+        self.model = self.recon.model
         self.optimizers = Optimizers(dict(self.model.nodes), tc.max_steps)
         self.strategy = AbsGradStrategy(config.method.densify, self.model.scene_radius, tc.max_steps)
-        self.lidar = LidarDepthTargets(self.scene, self.device)
-        self.dynamic_masks = DynamicMasks(self.scene, self.images, self.device)
-        has_env = any(m.is_environment for m in self.model.nodes.values())
         # sky masks only feed the opacity loss, which only means something with a sky node
-        self.sky_masks = SkyMasks(self.scene, self.images, self.device) if has_env and "opacity" in self.losses else None
+        self.use_sky_masks = bool(self.model.environment_nodes()) and "opacity" in self.losses
         self.sampler = torch.Generator().manual_seed(tc.seed + 1)
         self.train_views = self.scene.views(self.scene.train_frames)
         self.test_views = self.scene.views(self.scene.test_frames)
         self.step = 0
-        self.run_dir = run_dir or self._new_run_dir()
-        self.argv = argv
-        if tc.resume is not None:
-            self.load_checkpoint(find_checkpoint(tc.resume))
+        self._stop_signal: Optional[int] = None
+        if resume_state is not None:
+            self.load_state(resume_state)
+            self.run.truncate_metrics(self.step)
 
-    # ------------------------------------------------------------------ set-up helpers
-    def _new_run_dir(self) -> Path:
+    # ------------------------------------------------------------------ run directory
+    def _open_run_directory(self, scene: Optional[SceneData]) -> tuple[RunDirectory, Optional[dict]]:
         tc = self.config.trainer
-        name = tc.run_name or f"{self.scene.name}-{self.config.method_name}-{time.strftime('%Y%m%d-%H%M%S')}"
-        return Path(tc.output_dir) / name
+        if tc.resume is None:
+            name = tc.run_name or (f"{scene.name if scene is not None else self.config.dataparser_name}-"
+                                   f"{self.config.method_name}-{time.strftime('%Y%m%d-%H%M%S')}")
+            run = RunDirectory(Path(tc.output_dir) / name)
+            run.create()
+            return run, None
+        source, ckpt, state = find_checkpoint(tc.resume, map_location=self.device)
+        self._check_resume_matches(source.read_info())
+        source.remove_temporary_files()
+        log.info("resuming from %s (step %s)", ckpt, step_of(ckpt))
+        if tc.run_name is not None and RunDirectory(Path(tc.output_dir) / tc.run_name).path != source.path:
+            # a branch: a new run directory that starts from the checkpoint
+            run = RunDirectory(Path(tc.output_dir) / tc.run_name)
+            run.create()
+            return run, state
+        return source, state
+
+    def _check_resume_matches(self, info: RunInfo) -> None:
+        """Refuse to continue a run with another method, method settings or data selection."""
+        mine = self.config
+        if mine.method_name != info.method or mine.dataparser_name != info.dataparser:
+            raise ConfigError(f"--trainer.resume: the run trained {info.method} on {info.dataparser}; "
+                              f"this command asks for {mine.method_name} on {mine.dataparser_name}")
+        recorded = info.extra.get("settings")
+        if recorded is None and info.argv:  # runs recorded before settings were stored
+            theirs = parse_recorded_args(info, self.plugins)
+            recorded = {"method": _comparable(theirs.method), "dataparser": _comparable(theirs.dataparser)}
+        if recorded is None:
+            return
+        for key, what, config in (("dataparser", "data selection (dataparser flags)", mine.dataparser),
+                                  ("method", "method settings (--method.* flags)", mine.method)):
+            da, db = _comparable(config), recorded.get(key, {})
+            if da != db:
+                changed = sorted(k for k in set(da) | set(db) if da.get(k) != db.get(k))
+                raise ConfigError(f"--trainer.resume: the {what} differ from the recorded run's: "
+                                  + ", ".join(f"{k}: {db.get(k)!r} -> {da.get(k)!r}" for k in changed[:6]))
 
     def write_run_info(self) -> None:
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        info = {
-            "argv": self.argv,
-            "method": self.config.method_name,
-            "dataparser": self.config.dataparser_name,
-            "rasterizer": self.rasterizer.name,
+        if self.run is None:
+            return
+        cwd = Path.cwd()
+        argv = absolute_argv(self.argv, self.config, cwd) if self.argv is not None else []
+        info = RunInfo(argv, self.config.method_name, self.config.dataparser_name, self.recon.assignment, {
+            "cwd": str(cwd),
+            "rasterizer": self.model.rasterizer.name,
             "scene": self.scene.name,
             "attribution": self.scene.attribution,
-            "node_assignment": self.model.assignment,
             "plugins": [[n, p.distribution, p.version] for n, p in self.plugins.loaded],
-        }
-        atomic_write_text(self.run_dir / "run.json", json.dumps(info, indent=2))
+            "settings": {"method": _comparable(self.config.method),
+                         "dataparser": _comparable(self.config.dataparser)},
+        })
+        atomic_write_text(self.run.info_path, info.to_json())
+
+    @property
+    def run_dir(self) -> Optional[Path]:
+        return None if self.run is None else self.run.path
 
     def sh_degree(self) -> int:
-        return min(3, self.step // max(1, self.config.method.sh_degree_interval))
-
-    def target(self, view: View) -> torch.Tensor:
-        return self.images.camera_image(self.scene.cameras[view.camera], view.frame).to(self.device)
+        return self.recon.sh_degree(self.step)
 
     # ------------------------------------------------------------------ training
     def loss_context(self, view: View, result) -> LossContext:
-        lidar = self.lidar.get(view) if "depth" in self.losses else None
+        obs = self.observations
+        lidar = obs.lidar(view) if "depth" in self.losses else None
         weight = self.config.method.dynamic_pixel_weight
         pixel_weights = None
         if weight != 1.0 and self.scene.tracks:
-            pixel_weights = 1.0 + (weight - 1.0) * self.dynamic_masks.get(view, "all")
+            pixel_weights = 1.0 + (weight - 1.0) * obs.dynamic_mask(view, "all")
         return LossContext(
-            rgb=result.rgb, depth=result.depth, alpha=result.alpha, target=self.target(view),
+            rgb=result.rgb, depth=result.depth, alpha=result.alpha, target=obs.image(view),
             pixel_weights=pixel_weights,
             lidar_pixels=None if lidar is None else lidar[0], lidar_depth=None if lidar is None else lidar[1],
-            sky_mask=self.sky_masks.get(view) if self.sky_masks is not None else None,
+            sky_mask=obs.sky_mask(view) if self.use_sky_masks else None,
             step=self.step,
         )
 
-    def train_step(self) -> dict[str, float]:
+    def sample_view(self) -> View:
+        """The next training view (uniform over the training views, seeded)."""
         i = int(torch.randint(len(self.train_views), (1,), generator=self.sampler))
-        view = self.train_views[i]
-        result = self.model.render(view, self.sh_degree(), step=self.step)
+        return self.train_views[i]
+
+    def train_step(self, view: Optional[View] = None) -> dict[str, float]:
+        """One optimisation step on ``view`` (default: a sampled training view)."""
+        view = self.sample_view() if view is None else view
+        result = self.recon.render_view(view, step=self.step)
         ctx = self.loss_context(view, result)
         terms: dict[str, torch.Tensor] = {}
         for name, (fn, weight) in self.losses.items():
@@ -168,8 +208,8 @@ class Trainer:
             if value is not None:
                 terms[name] = weight * value
         reg_w = self.config.method.regularization_weights
-        for node in self.model.nodes.values():
-            for name, value in node.regularization(view.frame, float(self.scene.frame_timestamps[view.frame])).items():
+        for node_name, output in result.outputs.items():
+            for name, value in self.model.nodes[node_name].regularization(output).items():
                 if reg_w.get(name, 0.0) != 0.0:
                     terms[name] = reg_w[name] * value
         loss = sum(terms.values())
@@ -185,17 +225,41 @@ class Trainer:
         self.optimizers.step(self.step)
         self.optimizers.zero_grad()
         self.step += 1
+        self.recon.step = self.step
         self.strategy.step(self.model.gaussian_nodes(), self.optimizers, self.step)
         with torch.no_grad():
             mse = float(((result.rgb.detach().clamp(0, 1) - ctx.target) ** 2).mean())
         return {"loss": float(loss.detach()), "psnr": psnr_from_mse(mse), **{k: float(v.detach()) for k, v in terms.items()}}
 
     def train(self) -> dict:
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
+        """Train to ``max_steps`` (or ``max_seconds``), checkpointing and evaluating on the way;
+        returns the final evaluation."""
+        if self.run is None:
+            raise ValueError("Trainer.train needs a run directory (persist=True)")
         tc = self.config.trainer
         self.write_run_info()
-        metrics_path = self.run_dir / "metrics.jsonl"
+        file_log = logging.FileHandler(self.run.log_path)
+        file_log.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s"))
+        omnire_log = logging.getLogger("omnire")
+        omnire_log.addHandler(file_log)
+        for record in self._early_records:
+            file_log.handle(record)
+        previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            return self._train_loop(tc)
+        finally:
+            for s, handler in previous.items():
+                signal.signal(s, handler)
+            omnire_log.removeHandler(file_log)
+            file_log.close()
+
+    def _on_signal(self, signum: int, frame) -> None:
+        self._stop_signal = signum
+
+    def _train_loop(self, tc: TrainerConfig) -> dict:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+        metrics_path = self.run.metrics_path
         progress = Progress(
             TextColumn("[bold]train[/]"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
             TextColumn("loss {task.fields[loss]:.4f}  psnr {task.fields[psnr]:.2f}  {task.fields[its]:.2f} it/s  "
@@ -203,60 +267,79 @@ class Trainer:
             TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), disable=not tc.progress, transient=False,
         )
         train_seconds = 0.0  # time in training steps only (evaluation excluded)
-        last_eval = None
-        with progress, open(metrics_path, "a") as log:
+        diverged: list[str] = []
+        with progress, open(metrics_path, "a") as metrics:
             task = progress.add_task("train", total=tc.max_steps, completed=self.step, loss=0.0, psnr=0.0, its=0.0,
                                      ng=self.model.num_gaussians())
-            window_n = 0
-            window_seconds = 0.0
+            window_n, window_seconds, window_psnr = 0, 0.0, []
             while self.step < tc.max_steps and not (tc.max_seconds and train_seconds >= tc.max_seconds):
+                if self._stop_signal is not None:
+                    self._interrupt()
                 t0 = time.perf_counter()
                 stats = self.train_step()
                 dt = time.perf_counter() - t0
                 train_seconds += dt
                 window_seconds += dt
                 window_n += 1
+                window_psnr.append(stats["psnr"])
                 if self.step % tc.log_every == 0 or self.step == tc.max_steps:
                     its = window_n / max(window_seconds, 1e-9)
-                    window_seconds, window_n = 0.0, 0
                     record = {"step": self.step, "wall": train_seconds, "its": its,
                               "num_gaussians": self.model.num_gaussians(), **stats}
-                    log.write(json.dumps(record) + "\n")
-                    log.flush()
+                    metrics.write(json.dumps(record) + "\n")
+                    metrics.flush()
+                    mean_psnr = sum(window_psnr) / len(window_psnr)
+                    if self.step >= 4 * tc.log_every and mean_psnr < DIVERGENCE_PSNR and not diverged:
+                        diverged.append(f"training PSNR fell to {mean_psnr:.1f} dB by step {self.step}")
+                        progress.console.print(f"[yellow]warning:[/] {diverged[0]}: the run looks diverged "
+                                               "(learning rates too high?)")
+                        log.warning("%s: the run looks diverged", diverged[0])
+                    window_seconds, window_n, window_psnr = 0.0, 0, []
                     progress.update(task, completed=self.step, loss=stats["loss"], psnr=stats["psnr"], its=its,
                                     ng=record["num_gaussians"])
                 if tc.eval_every and self.step % tc.eval_every == 0 and self.step < tc.max_steps:
-                    last_eval = self.evaluate()
-                    log.write(json.dumps({"step": self.step, "wall": train_seconds, "eval": last_eval}) + "\n")
+                    evaluation = self.evaluate()
+                    metrics.write(json.dumps({"step": self.step, "wall": train_seconds, "eval": evaluation}) + "\n")
                 if self.step % tc.checkpoint_every == 0 or self.step == tc.max_steps:
                     self.save_checkpoint()
             progress.update(task, completed=self.step)
+        if self._stop_signal is not None:
+            self._interrupt()
         if self.step % tc.checkpoint_every != 0 and self.step != tc.max_steps:
             self.save_checkpoint()  # stopped by the time budget
-        last_eval = self.evaluate()
-        last_eval["train_seconds"] = train_seconds
-        last_eval["peak_rss_mb"] = peak_rss_mb()
-        with open(metrics_path, "a") as log:
-            log.write(json.dumps({"step": self.step, "wall": train_seconds, "eval": last_eval, "final": True}) + "\n")
-        return last_eval
+        final = self.evaluate()
+        final["train_seconds"] = train_seconds
+        final["peak_rss_mb"] = peak_rss_mb()
+        if diverged:
+            final["warnings"] = diverged
+        with open(metrics_path, "a") as metrics:
+            metrics.write(json.dumps({"step": self.step, "wall": train_seconds, "eval": final, "final": True}) + "\n")
+        return final
+
+    def _interrupt(self) -> None:
+        name = signal.Signals(self._stop_signal).name
+        path = self.save_checkpoint()
+        raise TrainingInterrupted(f"{name}: stopped at step {self.step}; checkpoint {path} written "
+                                  f"(continue with --trainer.resume {self.run.path})")
 
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()
     def evaluate(self, write: bool = True) -> dict:
-        from omnire.evaluation import evaluate_model
+        from omnire.evaluation import evaluate
 
-        result = evaluate_model(self)
-        if write:
-            atomic_write_text(self.run_dir / "eval" / f"step-{self.step:06d}.json", json.dumps(result, indent=2))
+        result = evaluate(self.recon, self.observations, self.train_views, self.test_views,
+                          self.config.trainer.eval_train_views)
+        if write and self.run is not None:
+            atomic_write_text(self.run.path / "eval" / f"step-{self.step:06d}.json", json.dumps(result, indent=2))
         return result
 
     # ------------------------------------------------------------------ checkpoints
-    def save_checkpoint(self) -> Path:
+    def state_dict(self) -> dict:
         for name, p in self.model.named_parameters():
             if not torch.isfinite(p).all():
                 raise TrainingError(f"parameter {name} has non-finite values at step {self.step}; "
                                     "refusing to write a checkpoint")
-        state = {
+        return {
             "step": self.step,
             "model": self.model.state_dict(),
             "optimizers": self.optimizers.state_dict(),
@@ -264,19 +347,24 @@ class Trainer:
             "rng_torch": torch.get_rng_state(),
             "rng_sampler": self.sampler.get_state(),
         }
-        path = self.run_dir / "checkpoints" / f"step-{self.step:06d}.pt"
-        import io
 
+    def save_checkpoint(self) -> Path:
+        """Write ``checkpoints/step-N.pt`` atomically; a failed write (disk full, no
+        permission) is a one-line error naming the path and leaves older checkpoints intact."""
+        state = self.state_dict()
+        path = self.run.checkpoint_path(self.step)
         buf = io.BytesIO()
         torch.save(state, buf)
-        atomic_write_bytes(path, buf.getvalue())
+        try:
+            atomic_write_bytes(path, buf.getvalue())
+        except OSError as exc:
+            raise RunDirectoryError(f"{path}: cannot write checkpoint ({exc.strerror or exc}); "
+                                    "the previous checkpoints are intact") from None
         return path
 
-    def load_checkpoint(self, path: Path) -> None:
-        state = torch.load(path, map_location=self.device, weights_only=True)
-        for name, node in self.model.nodes.items():
-            node.prepare_load(state["model"], prefix=f"nodes.{name}.")
-        self.model.load_state_dict(state["model"])
+    def load_state(self, state: dict) -> None:
+        """Continue from a checkpoint state (model, optimisers, densification, RNGs)."""
+        self.recon.load_state(state)
         self.optimizers = Optimizers(dict(self.model.nodes), self.config.trainer.max_steps)
         self.optimizers.load_state_dict(state["optimizers"])
         self.strategy.load_state_dict(state["strategy"])
@@ -285,19 +373,30 @@ class Trainer:
         self.step = int(state["step"])
 
 
+def _comparable(config) -> dict:
+    """Flat {dotted field: value} of a config for comparing two runs' settings."""
+    flat: dict = {}
+    if config is None:
+        return flat
+
+    def walk(prefix: str, value) -> None:
+        if isinstance(value, dict) and "__type__" not in value:
+            for k, v in value.items():
+                walk(f"{prefix}.{k}" if prefix else str(k), v)
+        elif isinstance(value, dict):
+            for k, v in value.items():
+                if k != "__type__":
+                    walk(f"{prefix}.{k}" if prefix else k, v)
+        else:
+            flat[prefix] = value
+
+    walk("", to_dict(config))
+    return json.loads(json.dumps(flat))  # as stored in run.json (tuples become lists)
+
+
 def peak_rss_mb() -> float:
     """Peak resident memory of this process so far, in MB (Linux ru_maxrss is in KB)."""
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
-
-def find_checkpoint(path: Path) -> Path:
-    """A checkpoint file, or the latest ``checkpoints/step-*.pt`` of a run directory."""
-    path = Path(path)
-    if path.is_file():
-        return path
-    ckpts = sorted((path / "checkpoints").glob("step-*.pt"))
-    if not ckpts:
-        raise FileNotFoundError(f"{path}: no checkpoint file and no checkpoints/step-*.pt inside")
-    return ckpts[-1]

@@ -84,3 +84,19 @@ def assert_same_state(a: dict, b: dict) -> None:
         if torch.is_tensor(a[k]):
             assert a[k].shape == b[k].shape, k
             torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6, msg=k)
+
+
+def gaussians_at(node, frame, seconds=0.0, step=None, camera=None):
+    """A node's (world Gaussians, rows) at a recorded frame, or None when it is absent."""
+    from omnire.data.scene import SceneTime
+
+    out = node.gaussians_at(SceneTime(frame, seconds), camera, step)
+    return None if out is None else (out.gaussians, out.rows)
+
+
+def regularization_at(node, frame, seconds=0.0, step=None):
+    """A node's regularisers for what it renders at a recorded frame ({} when absent)."""
+    from omnire.data.scene import SceneTime
+
+    out = node.gaussians_at(SceneTime(frame, seconds), None, step)
+    return {} if out is None else node.regularization(out)

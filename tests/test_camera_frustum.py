@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from omnire.camera import PinholeCamera, in_frustum
+from omnire.camera import Camera, in_frustum
 
 
 def make_camera(seed=0):
@@ -16,7 +16,7 @@ def make_camera(seed=0):
     T[:3, :3] = R
     T[:3, 3] = torch.tensor(rng.normal(size=3) * 5)
     K = torch.tensor([[200.0, 0, 70.0], [0, 180.0, 40.0], [0, 0, 1]], dtype=torch.float64)
-    return PinholeCamera(K, T, 160, 90)
+    return Camera(K, T, 160, 90)
 
 
 def camera_coords(points, cam):
@@ -74,7 +74,7 @@ def test_bad_input_is_refused():
     with pytest.raises(ValueError, match="margin"):
         in_frustum(torch.zeros(5, 3), cam, -1.0)
     with pytest.raises(ValueError, match="image size"):
-        PinholeCamera(cam.K, cam.cam_to_world, 0, 10)
+        Camera(cam.K, cam.cam_to_world, 0, 10)
 
 
 def test_per_point_margin_equals_scalar_margin_point_by_point():

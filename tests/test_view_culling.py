@@ -19,9 +19,9 @@ def test_culling_renders_the_same_images_with_fewer_gaussians(method, tiny_scene
     for view in trainer.train_views:
         with torch.no_grad():
             cfg.cull_to_view = True
-            culled = trainer.model.render(view, 3)
+            culled = trainer.recon.render_view(view)
             cfg.cull_to_view = False
-            full = trainer.model.render(view, 3)
+            full = trainer.recon.render_view(view)
         torch.testing.assert_close(culled.rgb, full.rgb, rtol=0, atol=1e-6)
         torch.testing.assert_close(culled.depth, full.depth, rtol=0, atol=1e-5)
         fewer |= culled.num_gaussians < full.num_gaussians

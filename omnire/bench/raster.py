@@ -113,14 +113,15 @@ def _child(spec_json: str) -> None:
     """Run one case; print one JSON line with the result."""
     import torch
 
+    from omnire.camera import Camera
     from omnire.plugins import load_plugins
-    from omnire.rasterization import select_rasterizer
+    from omnire.rasterization import Splats, select_rasterizer
 
     spec = json.loads(spec_json)
     if spec["threads"]:
         torch.set_num_threads(spec["threads"])
     plugins = load_plugins()
-    rast = select_rasterizer(plugins.rasterizers, spec["rasterizer"], spec["device"])
+    rast = select_rasterizer(plugins, spec["rasterizer"], spec["device"])
     H, W = spec["height"], spec["width"]
     scene = make_scene(spec["n"], H, W, spec["coverage"], spec["seed"], spec["device"])
     gen = torch.Generator().manual_seed(1)
@@ -143,9 +144,11 @@ def _child(spec_json: str) -> None:
     t_start = time.perf_counter()
     for it in range(total):
         leaves = {k: v.detach().clone().requires_grad_(k not in ("viewmat", "K")) for k, v in scene.items()}
+        splats = Splats(*(leaves[k] for k in ("means", "quats", "scales", "opacities", "colors")))
+        camera = Camera.from_world_to_cam(leaves["viewmat"], leaves["K"], W, H)
         sync()
         t0 = time.perf_counter()
-        out = rast.rasterize(**leaves, width=W, height=H)
+        out = rast.rasterize(splats, camera)
         sync()
         t1 = time.perf_counter()
         loss = (out.rgb * w_rgb).sum() + (out.depth * w_depth).sum() + (out.alpha * w_alpha).sum()
@@ -155,7 +158,7 @@ def _child(spec_json: str) -> None:
         if it >= spec["warmup"]:
             fwd.append((t1 - t0) * 1e3)
             bwd.append((t2 - t1) * 1e3)
-        del out, loss, leaves
+        del out, loss, leaves, splats
         elapsed = time.perf_counter() - t_start
         if it + 1 < total and elapsed / (it + 1) * total > spec["time_cap"]:
             if not fwd:  # keep the (warm-up) sample rather than nothing

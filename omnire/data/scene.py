@@ -66,6 +66,13 @@ class CameraSequence:
     def num_frames(self) -> int:
         return len(self.image_paths)
 
+    def camera(self, frame: int, device="cpu"):
+        """The :class:`omnire.camera.Camera` of this sequence at ``frame``."""
+        from omnire.camera import Camera
+
+        return Camera.from_numpy(self.intrinsics, self.cam_to_world[frame], self.width, self.height, self.name,
+                                 device)
+
 
 @dataclasses.dataclass
 class LidarSweeps:
@@ -142,6 +149,25 @@ class View:
     frame: int
 
 
+@dataclasses.dataclass(frozen=True)
+class SceneTime:
+    """A moment of the log, as nodes see it.
+
+    Attributes:
+        frame: position in frame indices; fractional between recorded frames (a rendered
+            moment between two frames interpolates what was recorded at both).
+        seconds: the same moment in seconds (the log's clock).
+    """
+
+    frame: float
+    seconds: float
+
+    @property
+    def index(self) -> int | None:
+        """The frame index when the moment is a recorded frame, else None."""
+        return int(self.frame) if float(self.frame).is_integer() else None
+
+
 def holdout_split(num_frames: int, every: int) -> tuple[np.ndarray, np.ndarray]:
     """Train/test frame split: frames ``every, 2*every, ...`` are held out (all cameras).
 
@@ -187,6 +213,27 @@ class SceneData:
     @property
     def num_frames(self) -> int:
         return len(self.frame_timestamps)
+
+    def time_of_frame(self, frame: float) -> SceneTime:
+        """The moment at (possibly fractional) ``frame``; seconds interpolated linearly."""
+        if not 0 <= frame <= self.num_frames - 1:
+            raise SceneDataError(f"scene {self.name!r}: frame {frame} outside 0..{self.num_frames - 1}")
+        if float(frame).is_integer():
+            return SceneTime(frame, float(self.frame_timestamps[int(frame)]))
+        seconds = float(np.interp(frame, np.arange(self.num_frames), self.frame_timestamps))
+        return SceneTime(float(frame), seconds)
+
+    def time_at(self, seconds: float) -> SceneTime:
+        """The moment at ``seconds`` on the log's clock (fractional frame between the
+        enclosing recorded frames; the first/last frame outside the log's span)."""
+        from omnire.interpolation import bracket
+
+        i0, i1, w = bracket(self.frame_timestamps, seconds)
+        return SceneTime(float(i0[0] + w[0] * (i1[0] - i0[0])), float(seconds))
+
+    def camera(self, view: View, device="cpu"):
+        """The :class:`omnire.camera.Camera` of ``view``."""
+        return self.cameras[view.camera].camera(view.frame, device)
 
     def views(self, frames: np.ndarray) -> list[View]:
         """All (camera, frame) views for the given frames, frame-major."""

@@ -9,6 +9,8 @@ import numpy as np
 import OpenImageIO as oiio
 import torch
 
+from omnire.io.atomic import current_umask
+
 
 def write_png(path: str | Path, image: torch.Tensor | np.ndarray, bits: int = 8) -> None:
     """Write (H,W,C) values in [0,1] (8-bit) or raw values clipped to 0..65535 (16-bit)."""
@@ -30,6 +32,7 @@ def write_png(path: str | Path, image: torch.Tensor | np.ndarray, bits: int = 8)
         out.close()
         if not ok:
             raise OSError(f"{path}: writing failed ({oiio.geterror()})")
+        os.chmod(tmp, 0o666 & ~current_umask())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

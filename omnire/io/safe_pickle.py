@@ -18,10 +18,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from omnire.errors import MissingFileError, UserError
 
 
-class UnsafePickleError(pickle.UnpicklingError):
-    """A pickle asked for a global that is not on the allowlist."""
+class PickleReadError(UserError, pickle.UnpicklingError):
+    """A pickle file is damaged or not a pickle (the message names it)."""
+
+
+class UnsafePickleError(PickleReadError):
+    """A pickle asked for a global that is not on the allowlist: refused as unsafe."""
 
 
 class StandIn:
@@ -175,7 +180,7 @@ def load(path: str | Path) -> Any:
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
+        raise MissingFileError(f"{path}: no such file")
     raw = path.read_bytes()
     if raw[:2] == b"\x1f\x8b":
         raw = gzip.decompress(raw)
@@ -184,4 +189,4 @@ def load(path: str | Path) -> Any:
     except UnsafePickleError:
         raise
     except Exception as exc:
-        raise pickle.UnpicklingError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc
+        raise PickleReadError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc

@@ -20,27 +20,35 @@ import numpy as np
 import torch
 from torch import nn
 
-from omnire.data.scene import ActorTrack, SceneData
+from omnire.data.scene import ActorTrack, SceneData, SceneTime
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
-from omnire.geometry import quat_multiply, rotmat_to_quat
-from omnire.nodes.base import Node, ParamGroup
+from omnire.geometry import axis_angle_to_rotmat, quat_multiply, rotmat_to_quat, slerp_rotmats
+from omnire.interpolation import bracket
+from omnire.nodes.base import GaussianNode, GaussianNodeConfig, NodeContext, ParamGroup
 from omnire.pointcloud import points_in_box
 from omnire.rowsparse import gather_rows
 
 
-def axis_angle_to_rotmat(v: torch.Tensor) -> torch.Tensor:
-    """(..., 3) axis-angle -> (..., 3, 3), differentiable at 0 (Rodrigues with a Taylor
-    fallback for tiny angles)."""
-    theta2 = (v * v).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
-    small = theta2 < 1e-12
-    theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
-    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / torch.where(small, torch.ones_like(theta2), theta2))
-    x, y, z = v.unbind(-1)
-    zero = torch.zeros_like(x)
-    Kx = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*v.shape[:-1], 3, 3)
-    eye = torch.eye(3, dtype=v.dtype, device=v.device).expand_as(Kx)
-    return eye + a * Kx + b * (Kx @ Kx)
+def frame_blend(t: SceneTime, num_frames: int) -> tuple[int, int, float]:
+    """The recorded frames enclosing moment ``t`` and the weight of the second: (f0, f1, w);
+    (f, f, 0.0) at a recorded frame."""
+    if t.index is not None:
+        return t.index, t.index, 0.0
+    f0 = int(np.floor(t.frame))
+    f1 = min(f0 + 1, num_frames - 1)
+    return f0, f1, float(t.frame - f0)
+
+
+def train_frame_bracket(train_frames: np.ndarray, num_frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For every frame 0..F-1, the training frames to interpolate learned per-frame values
+    from (held-out frames get no gradient): (prev (F,), next (F,), weight (F,)); training
+    frames map to themselves, frames outside the training span to the nearest one."""
+    train = np.asarray(sorted(int(f) for f in train_frames))
+    if len(train) == 0:
+        f = np.arange(num_frames)
+        return f, f, np.zeros(num_frames)
+    i0, i1, w = bracket(train, np.arange(num_frames))
+    return train[i0], train[i1], w
 
 
 def usable_track(track: ActorTrack) -> bool:
@@ -77,17 +85,7 @@ class ActorPoses(nn.Module):
         self.delta_rot = nn.Parameter(torch.zeros(I, F, 3, device=device), requires_grad=refine)
         self.delta_t = nn.Parameter(torch.zeros(I, F, 3, device=device), requires_grad=refine)
         # For each frame: the training frames to interpolate refinement from (prev, next, weight).
-        train = np.asarray(sorted(int(f) for f in train_frames))
-        prev_idx, next_idx, w = [], [], []
-        for f in range(F):
-            if len(train) == 0 or f in set(train.tolist()):
-                prev_idx.append(f), next_idx.append(f), w.append(0.0)
-                continue
-            lo = train[train < f]
-            hi = train[train > f]
-            p = int(lo[-1]) if len(lo) else int(hi[0])
-            n = int(hi[0]) if len(hi) else int(lo[-1])
-            prev_idx.append(p), next_idx.append(n), w.append(0.0 if n == p else (f - p) / (n - p))
+        prev_idx, next_idx, w = train_frame_bracket(train_frames, F)
         self.register_buffer("interp_prev", torch.tensor(prev_idx, dtype=torch.long, device=device), persistent=False)
         self.register_buffer("interp_next", torch.tensor(next_idx, dtype=torch.long, device=device), persistent=False)
         self.register_buffer("interp_w", torch.tensor(w, dtype=torch.float32, device=device), persistent=False)
@@ -96,9 +94,32 @@ class ActorPoses(nn.Module):
     def num_instances(self) -> int:
         return self.present.shape[0]
 
-    def at(self, frame: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Poses of the instances present at ``frame``: (ids (P,), R (P,3,3), t (P,3))."""
-        ids = torch.nonzero(self.present[:, frame]).flatten()
+    @property
+    def num_frames(self) -> int:
+        return self.present.shape[1]
+
+    def at(self, t: SceneTime) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Poses of the instances present at moment ``t``: (ids (P,), R (P,3,3), t (P,3)).
+        Between recorded frames an instance is present where it is at the nearer frame; its
+        pose is SLERPed (rotation) and interpolated (translation) when it is present at both."""
+        f0, f1, w = frame_blend(t, self.num_frames)
+        if w == 0.0:
+            return self.at_frame(f0)
+        near = f0 if w < 0.5 else f1
+        ids, R, tr = self.at_frame(near)
+        both = self.present[ids, f0] & self.present[ids, f1]
+        if bool(both.any()):
+            sel = torch.nonzero(both).flatten()
+            _, R0, t0 = self.at_frame(f0, ids[sel])
+            _, R1, t1 = self.at_frame(f1, ids[sel])
+            R = R.index_put((sel,), slerp_rotmats(R0, R1, torch.full((len(sel),), w, dtype=R0.dtype)))
+            tr = tr.index_put((sel,), (1 - w) * t0 + w * t1)
+        return ids, R, tr
+
+    def at_frame(self, frame: int, ids: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Poses at recorded ``frame`` of the instances present there (or of ``ids``)."""
+        if ids is None:
+            ids = torch.nonzero(self.present[:, frame]).flatten()
         R, t = self.base_R[ids, frame], self.base_t[ids, frame]
         if self.refine:
             p, n, w = self.interp_prev[frame], self.interp_next[frame], self.interp_w[frame]
@@ -154,17 +175,21 @@ def segment_rows(offsets: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
     return starts[seg] + torch.arange(total, device=offsets.device) - first_out[seg]
 
 
-class ActorNode(Node):
+class ActorNode(GaussianNode):
     """Base of box-based actor nodes: one node object holds every instance of its type.
 
-    Subclasses set ``self.poses`` (:class:`ActorPoses`) and the per-Gaussian buffer
-    ``instance`` (N,), non-decreasing (Gaussians of one instance are contiguous rows).
+    Sets ``self.track_ids`` and ``self.poses`` (:class:`ActorPoses`, refined when
+    ``refine_boxes``); subclasses set the per-Gaussian buffer ``instance`` (N,),
+    non-decreasing (Gaussians of one instance are contiguous rows).
     """
 
     poses: ActorPoses
 
-    def __init__(self) -> None:
-        super().__init__()
+    def __init__(self, config: GaussianNodeConfig, context: NodeContext, tracks: list[ActorTrack],
+                 refine_boxes: bool) -> None:
+        super().__init__(config, context)
+        self.track_ids = [t.track_id for t in tracks]
+        self.poses = ActorPoses(tracks, context.scene.train_frames, refine_boxes, context.device)
         self._offsets: Optional[tuple[torch.Tensor, torch.Tensor]] = None  # (instance tensor, offsets) cache
 
     def instance_offsets(self) -> torch.Tensor:
@@ -183,6 +208,52 @@ class ActorNode(Node):
     def row_order(self) -> Optional[torch.Tensor]:
         instance = self.gaussian_buffers["instance"]
         return None if rows_grouped(instance) else torch.sort(instance, stable=True).indices
+
+
+@dataclasses.dataclass
+class BoxActorConfig(GaussianNodeConfig):
+    """Actors initialised from the LiDAR in their boxes, with refined per-frame box poses."""
+
+    voxel_size: float = 0.05
+    """Voxel edge (m) for the accumulated in-box LiDAR."""
+    max_points_per_instance: int = 6000
+    """Cap on LiDAR points per instance after downsampling."""
+    random_points_per_instance: int = 300
+    """Random points inside each box (covers surfaces LiDAR missed)."""
+    max_init_scale: float = 0.2
+    """Largest initial Gaussian scale (m)."""
+    refine_boxes: bool = True
+    """Learn per-frame box pose corrections (box refinement)."""
+    lr_box_rotation: float = 1e-5
+    """Box rotation refinement lr."""
+    lr_box_translation: float = 5e-4
+    """Box translation refinement lr."""
+
+
+class BoxActorNode(ActorNode):
+    """Actors whose Gaussians live in box-local space (rigid and deformable actors): built
+    from :func:`init_box_gaussians`, with each box's half size as a buffer."""
+
+    config: BoxActorConfig
+
+    def __init__(self, config: BoxActorConfig, context: NodeContext, tracks: list[ActorTrack]) -> None:
+        super().__init__(config, context, tracks, config.refine_boxes)
+        instance: dict[str, torch.Tensor] = {}
+
+        def build() -> dict[str, torch.Tensor]:
+            params, instance["rows"] = init_box_gaussians(
+                context, tracks, config.voxel_size, config.max_points_per_instance, config.random_points_per_instance,
+                config.max_init_scale, config.sh_degree, config.init_opacity)
+            return params
+
+        self.init_gaussians(context, build)
+        self.gaussian_buffers["instance"] = instance.get("rows", torch.zeros(0, dtype=torch.long, device=context.device))
+        self.register_buffer("half_sizes", torch.as_tensor(np.stack([t.size for t in tracks]) / 2, dtype=torch.float32,
+                                                           device=context.device))
+
+    def param_groups(self) -> list[ParamGroup]:
+        return super().param_groups() + self.poses.param_groups(self.config.lr_box_rotation,
+                                                                 self.config.lr_box_translation)
 
 
 def box_local_lidar(scene: SceneData, track: ActorTrack, frames: np.ndarray, margin: float = 0.1) -> tuple[np.ndarray, np.ndarray]:

@@ -12,9 +12,10 @@ from typing import Optional
 import numpy as np
 import torch
 
-from omnire.camera import PinholeCamera
+from omnire.camera import Camera
+from omnire.data.scene import SceneTime
 from omnire.gaussians import Gaussians
-from omnire.nodes.base import GaussianNodeConfig, Node, NodeContext, init_gaussian_params
+from omnire.nodes.base import GaussianNode, GaussianNodeConfig, NodeContext, NodeOutput, init_gaussian_params
 from omnire.pointcloud import colour_from_images, far_shell, knn_scales, points_in_box, to_tensor, voxel_downsample
 
 
@@ -78,21 +79,15 @@ def init_background_params(config: BackgroundConfig, context: NodeContext) -> di
     return {k: v.to(context.device) for k, v in params.items()}
 
 
-class BackgroundNode(Node):
+class BackgroundNode(GaussianNode):
     def __init__(self, config: BackgroundConfig, context: NodeContext, tracks: Optional[list] = None) -> None:
-        super().__init__()
-        self.config = config
-        self.scene_radius = context.scene_radius
-        for k, v in init_background_params(config, context).items():
-            self.gaussian_params[k] = torch.nn.Parameter(v)
+        super().__init__(config, context)
+        self.init_gaussians(context, lambda: init_background_params(config, context))
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
-                     camera: Optional[PinholeCamera] = None):
-        rows = None  # all rows: the background is present at every frame
-        return Gaussians.from_params(self.gaussian_params), rows
-
-    def gaussian_lrs(self):
-        return self.config.gaussian_lrs(self.scene_radius)
+    def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
+                     step: Optional[int] = None) -> Optional[NodeOutput]:
+        # all rows: the background is present at every moment
+        return NodeOutput(Gaussians.from_params(self.gaussian_params), None, t)
 
 
 def _frustum_points(scene, count: int, rng: np.random.Generator) -> np.ndarray:

@@ -1,34 +1,41 @@
-"""Scene-graph node base class.
+"""Scene-graph node base classes.
 
 A node type holds *all* actors it models (one node object per type, batched, as in the
 reference implementation), so per-step cost is one gather + one transform per type.
 
-Contract:
-- ``gaussian_params`` (ParameterDict, keys :data:`omnire.gaussians.GAUSSIAN_KEYS` plus any
-  per-Gaussian extras): every per-Gaussian tensor the densification strategy must clone,
-  split and prune. ``gaussian_buffers``: per-Gaussian non-trainable tensors (e.g. owning
-  instance), densified alongside.
-- ``gaussians_at(frame, time, step=None, camera=None)`` returns the world-space Gaussians
-  of the instances present at that frame and the rows of ``gaussian_params`` they came
-  from, or None (absent nodes cost nothing). ``step`` is the training step (None outside
-  training: render the fully trained model); nodes use it for schedules such as warm-ups.
-  ``camera`` (:class:`omnire.camera.PinholeCamera`) is the camera being rendered: nodes
-  with costly per-Gaussian work may skip Gaussians it cannot see (the rasterizer culls
-  anyway); None means "no camera": return everything.
+Contract of a :class:`Node`:
+- ``gaussian_params`` (ParameterDict, keys ``gaussian_keys``: :data:`omnire.gaussians.GAUSSIAN_KEYS`
+  plus any per-Gaussian extras): every per-Gaussian tensor the densification strategy must
+  clone, split and prune. ``gaussian_buffers``: per-Gaussian non-trainable tensors (e.g.
+  owning instance), densified alongside.
+- ``gaussians_at(t, camera=None, step=None)`` returns a :class:`NodeOutput` (world-space
+  Gaussians of what is present at the moment ``t`` and the rows of ``gaussian_params``
+  they came from), or None when nothing of the node is present (absent nodes cost
+  nothing). ``camera`` is the camera being rendered: nodes with costly per-Gaussian work
+  may skip Gaussians it cannot see (the rasterizer culls anyway); None means "no camera":
+  return everything. ``step`` is the training step (None outside training: render the
+  fully trained model); nodes use it for schedules such as warm-ups.
+- ``regularization(output)`` returns node-specific loss terms computed from what the node
+  produced for the rendered view (nothing is kept between calls).
 - ``param_groups()`` lists learning-rate groups, per-Gaussian ones by key.
 - ``row_order()`` (optional): a permutation restoring the row order the node relies on
   after densification (actor nodes keep each instance's rows contiguous).
+
+:class:`GaussianNode` carries what Gaussian-holding nodes share (config, scene radius,
+per-Gaussian learning rates); :class:`EnvironmentNode` is the base of nodes that paint the
+image background (the sky) instead of holding Gaussians.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import torch
 from torch import nn
 
-from omnire.camera import PinholeCamera
+from omnire.camera import Camera
 from omnire.config import InstantiateConfig
+from omnire.data.scene import SceneTime
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 
 
@@ -44,6 +51,24 @@ class ParamGroup:
     key: Optional[str] = None
     warmup_steps: int = 0
     """Linear warm-up from 0 (used for pose refinement)."""
+
+
+@dataclasses.dataclass
+class NodeOutput:
+    """What a node contributes to one rendered view.
+
+    Attributes:
+        gaussians: world-space Gaussians (M of them).
+        rows: (M,) rows of the node's ``gaussian_params`` they came from, None = all rows in order.
+        time: the moment rendered.
+        extras: node-specific tensors its :meth:`Node.regularization` needs (e.g. deformed
+            box-local means); nothing else reads them.
+    """
+
+    gaussians: Gaussians
+    rows: Optional[torch.Tensor]
+    time: SceneTime
+    extras: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
@@ -89,11 +114,14 @@ class NodeContext:
 
     Attributes:
         scene: the SceneData.
-        images: the ImageCache (for colouring initial points).
+        images: the ImageCache (for colouring initial points); None when restoring.
         scene_radius: scale of the scene in metres (learning rates of means scale with it).
         device: torch device.
         generator: seeded torch.Generator for initialisation.
         excluded_tracks: tracks modelled by other nodes (background must not absorb them).
+        restoring: the node is built to receive a checkpoint: skip the data-driven
+            initialisation (LiDAR, images, pose estimation); per-Gaussian tensors start
+            empty and every persistent tensor comes from the checkpoint.
     """
 
     scene: Any
@@ -102,13 +130,14 @@ class NodeContext:
     device: torch.device
     generator: torch.Generator
     excluded_tracks: list = dataclasses.field(default_factory=list)
+    restoring: bool = False
 
 
 class Node(nn.Module):
     """Base class: see the module docstring for the contract."""
 
-    #: True for nodes that paint the image background (sky) instead of Gaussians.
-    is_environment: bool = False
+    #: Per-Gaussian parameter keys (densified together).
+    gaussian_keys: tuple[str, ...] = GAUSSIAN_KEYS
 
     def __init__(self) -> None:
         super().__init__()
@@ -119,9 +148,14 @@ class Node(nn.Module):
     def num_gaussians(self) -> int:
         return int(self.gaussian_params["means"].shape[0]) if "means" in self.gaussian_params else 0
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
-                     camera: Optional[PinholeCamera] = None) -> Optional[tuple[Gaussians, Optional[torch.Tensor]]]:
+    def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
+                     step: Optional[int] = None) -> Optional[NodeOutput]:
         raise NotImplementedError
+
+    def regularization(self, output: NodeOutput) -> dict[str, torch.Tensor]:
+        """Node-specific loss terms (name -> scalar) of what ``output`` rendered; weighted by
+        the method config."""
+        return {}
 
     def param_groups(self) -> list[ParamGroup]:
         return [
@@ -143,9 +177,13 @@ class Node(nn.Module):
         """(N,) bool of Gaussians to prune for node-specific reasons (e.g. left their box)."""
         return None
 
-    def regularization(self, frame: int, time: float) -> dict[str, torch.Tensor]:
-        """Node-specific loss terms (name -> scalar), weighted by the method config."""
-        return {}
+    def init_gaussians(self, context: NodeContext, build: Callable[[], dict[str, torch.Tensor]]) -> None:
+        """Set ``gaussian_params`` from ``build()`` (raw tensors by key), or, when restoring a
+        checkpoint, to empty placeholders of every key (resized by :meth:`prepare_load`)."""
+        tensors = ({k: torch.zeros(0, device=context.device) for k in self.gaussian_keys} if context.restoring
+                   else build())
+        for k in self.gaussian_keys:
+            self.gaussian_params[k] = nn.Parameter(tensors[k])
 
     def set_gaussian_tensors(self, tensors: dict[str, torch.Tensor]) -> None:
         """Replace every per-Gaussian tensor (used by densification and checkpoint loading)."""
@@ -163,12 +201,50 @@ class Node(nn.Module):
         self.gaussian_buffers = {k: v.clone() for k, v in state.items()}
 
     def prepare_load(self, state_dict: dict[str, torch.Tensor], prefix: str = "") -> None:
+        """Resize every parameter and buffer to the shapes in ``state_dict`` (keys under
+        ``prefix``), so that ``load_state_dict`` can fill them."""
         for k in list(self.gaussian_params.keys()):
             name = f"{prefix}gaussian_params.{k}"
             if name in state_dict and state_dict[name].shape != self.gaussian_params[k].shape:
                 self.gaussian_params[k] = nn.Parameter(
                     torch.empty_like(state_dict[name]), requires_grad=self.gaussian_params[k].requires_grad
                 )
+        for module_name, module in self.named_modules():
+            sub = f"{prefix}{module_name}." if module_name else prefix
+            for pname, p in list(module.named_parameters(recurse=False)):
+                saved = state_dict.get(sub + pname)
+                if saved is not None and saved.shape != p.shape and not pname.startswith("gaussian_params"):
+                    setattr(module, pname, nn.Parameter(torch.empty_like(saved), requires_grad=p.requires_grad))
+            for bname, b in list(module.named_buffers(recurse=False)):
+                saved = state_dict.get(sub + bname)
+                if saved is not None and b is not None and saved.shape != b.shape:
+                    module._buffers[bname] = torch.empty_like(saved)
+
+
+class GaussianNode(Node):
+    """Base of nodes holding Gaussians: keeps the config and the scene radius, and takes the
+    per-Gaussian learning rates from a :class:`GaussianNodeConfig`."""
+
+    def __init__(self, config: GaussianNodeConfig, context: NodeContext) -> None:
+        super().__init__()
+        self.config = config
+        self.scene_radius = context.scene_radius
+
+    def gaussian_lrs(self) -> dict[str, tuple[float, Optional[float]]]:
+        return self.config.gaussian_lrs(self.scene_radius)
+
+
+class EnvironmentNode(Node):
+    """Base of nodes that paint what no Gaussian covers (the sky), composited under the
+    Gaussians as C = C_gs + (1 - O_gs) C_env. They hold no Gaussians."""
+
+    def render_environment(self, camera: Camera, t: SceneTime) -> torch.Tensor:
+        """(H, W, 3) colour of every pixel of ``camera`` at ``t``."""
+        raise NotImplementedError
+
+    def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
+                     step: Optional[int] = None) -> Optional[NodeOutput]:
+        return None
 
 
 def init_gaussian_params(
@@ -194,9 +270,3 @@ def init_gaussian_params(
         "sh0": rgb_to_sh0(colors),
         "shN": torch.zeros(N, num_sh_bases(sh_degree) - 1, 3, dtype=points.dtype),
     }
-
-
-def assert_gaussian_keys(params: dict[str, torch.Tensor]) -> None:
-    missing = [k for k in GAUSSIAN_KEYS if k not in params]
-    if missing:
-        raise KeyError(f"gaussian params missing {missing}")

@@ -49,6 +49,7 @@ from omnire.data.scene import (
     holdout_split,
 )
 from omnire.io import safe_pickle
+from omnire.api import MissingFileError
 
 CAMERAS = (
     "front_camera",
@@ -166,7 +167,7 @@ def _pose_matrices(entries: list[Any], path: Path) -> np.ndarray:
 # ----------------------------------------------------------------------------- file reading
 def _read_json(path: Path, what: str) -> Any:
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: missing {what}")
+        raise MissingFileError(f"{path}: missing {what}")
     try:
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -190,7 +191,7 @@ def _read_frame_table(path: Path, columns: Sequence[str], what: str) -> pd.DataF
     try:
         table = safe_pickle.load(path)
     except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: missing {what}") from None
+        raise MissingFileError(f"{path}: missing {what}") from None
     except (pickle.UnpicklingError, EOFError, OSError, zlib.error) as exc:
         raise SceneDataError(f"{path}: unreadable {what} ({exc}); expected {expected}") from None
     if not isinstance(table, pd.DataFrame):
@@ -330,7 +331,7 @@ class PandasetDataparser(Dataparser):
         cfg = self.config
         root = Path(cfg.data)
         if not root.is_dir():
-            raise FileNotFoundError(
+            raise MissingFileError(
                 f"PandaSet scene directory {root} does not exist; expected one PandaSet sequence "
                 "directory holding camera/, lidar/ and annotations/ (e.g. data/demo/pandaset_002)"
             )
@@ -437,7 +438,7 @@ class PandasetDataparser(Dataparser):
         missing = [p for p in paths if not p.is_file()]
         if missing:
             more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
-            raise FileNotFoundError(f"{missing[0]}: missing image of camera {name}{more}")
+            raise MissingFileError(f"{missing[0]}: missing image of camera {name}{more}")
         width, height = _image_size(paths[0])
         # Loaded size: files scaled by `scale`, rounded; K scaled per axis by the exact ratio.
         # PandaSet's K maps to continuous image coordinates with pixel centres at +0.5 (its

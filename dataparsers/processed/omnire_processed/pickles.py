@@ -27,6 +27,7 @@ import numpy as np
 
 from omnire.io import safe_pickle
 from omnire.io.safe_pickle import RestrictedUnpickler, StandIn, UnsafePickleError
+from omnire.api import MissingFileError
 
 _JOBLIB_WRAPPER = ("joblib.numpy_pickle", "NumpyArrayWrapper")
 _TORCH_STORAGE = ("torch.storage", "_load_from_bytes")
@@ -93,7 +94,7 @@ def load_smpl_pickle(path: str | Path) -> Any:
     as numpy (torch tensors stay tensors; callers convert)."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
+        raise MissingFileError(f"{path}: no such file")
     raw = path.read_bytes()
     if raw[:2] == b"\x1f\x8b":
         raw = gzip.decompress(raw)

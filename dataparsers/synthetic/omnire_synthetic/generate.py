@@ -204,7 +204,7 @@ def _generate(out: str | Path, preset: str, opts: SynthOptions, progress, t_star
     needs_body = spec.walkers + spec.crossers > 0
     template = None
     if needs_body:
-        from omnire.body import load_template
+        from omnire_body import load_template
 
         template = load_template()
     x_end = float(ego[-1, 0, 3])
@@ -417,11 +417,11 @@ def _write_lidar(out: Path, t: int, style: str, p_world: np.ndarray, intensity: 
 
 
 def _rot_noise(rng: np.random.Generator, shape: tuple[int, ...], deg: float) -> np.ndarray:
-    from omnire.body import axis_angle_to_matrix
+    from omnire.geometry import axis_angle_to_rotmat
 
     if deg <= 0:
         return np.broadcast_to(np.eye(3), shape + (3, 3)).copy()
-    return axis_angle_to_matrix(rng.normal(scale=np.deg2rad(deg), size=shape + (3,)))
+    return axis_angle_to_rotmat(rng.normal(scale=np.deg2rad(deg), size=shape + (3,)))
 
 
 def _write_annotations(out: Path, preset: str, opts: SynthOptions, rng: np.random.Generator, actors: list[Actor],

@@ -11,9 +11,10 @@ from typing import Optional
 
 import numpy as np
 
-from omnire.body import axis_angle_to_matrix, lbs
-from omnire.body.lbs import LBSOutput
-from omnire.body.template import BodyTemplate
+from omnire.geometry import axis_angle_to_rotmat
+from omnire_body import lbs
+from omnire_body.lbs import LBSOutput
+from omnire_body.template import BodyTemplate
 from omnire_synthetic.meshes import Mesh, box, ellipsoid, prism, quad, rigid, rot_x, rot_z
 from omnire_synthetic.textures import FACADES, MAT, PAINTS, PANTS, SHIRTS
 
@@ -358,7 +359,7 @@ def gait_pose(phase: np.ndarray) -> np.ndarray:
     aa[:, 19, 0] = -0.3 - 0.2 * np.clip(s, 0, None)
     aa[:, 3, 1] = 0.08 * s  # a little torso twist
     aa[:, 9, 1] = -0.05 * s
-    R = axis_angle_to_matrix(aa)  # (F, 24, 3, 3)
+    R = axis_angle_to_rotmat(aa)  # (F, 24, 3, 3)
     return R[:, 1:]
 
 

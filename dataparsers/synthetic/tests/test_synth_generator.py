@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omnire.body import lbs, load_template
+from omnire_body import lbs, load_template
 import omnire_synthetic.plugin as synthetic_plugin
 from omnire.plugins import load_plugins
 from omnire_synthetic.generate import SynthOptions, generate

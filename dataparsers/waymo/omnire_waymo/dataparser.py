@@ -41,6 +41,7 @@ from typing import Literal, Optional, Type
 import numpy as np
 
 from omnire.api import (
+    MissingFileError,
     ActorTrack,
     CameraSequence,
     ConfigError,
@@ -101,13 +102,13 @@ def resolve_segment(data: Path) -> Path:
         if len(found) == 1:
             return found[0]
         if not found:
-            raise FileNotFoundError(
+            raise MissingFileError(
                 f"{data}: no *.tfrecord segment in this folder; --data expects a Waymo Open Dataset v1 "
                 "segment file (segment-..._with_camera_labels.tfrecord) or a folder holding exactly one"
             )
         names = ", ".join(p.name for p in found[:5]) + (" ..." if len(found) > 5 else "")
         raise ConfigError(f"{data}: holds {len(found)} segments ({names}); pass one file with --data")
-    raise FileNotFoundError(f"{data}: Waymo segment not found (expected a .tfrecord file or a folder holding one)")
+    raise MissingFileError(f"{data}: Waymo segment not found (expected a .tfrecord file or a folder holding one)")
 
 
 def transform(msg, where: str) -> np.ndarray:

@@ -24,6 +24,7 @@ from typing import BinaryIO, Iterator, NamedTuple, Optional
 import google_crc32c
 
 from omnire.api import SceneDataError
+from omnire.api import MissingFileError
 
 _MASK_DELTA = 0xA282EAD8
 _HEADER = struct.Struct("<QI")  # length, masked crc of the length bytes
@@ -68,7 +69,7 @@ class TFRecordReader:
         try:
             self._f: BinaryIO = open(self.path, "rb")
         except FileNotFoundError:
-            raise FileNotFoundError(f"{self.path}: TFRecord file not found") from None
+            raise MissingFileError(f"{self.path}: TFRecord file not found") from None
         self.size = os.fstat(self._f.fileno()).st_size
 
     def __enter__(self) -> "TFRecordReader":

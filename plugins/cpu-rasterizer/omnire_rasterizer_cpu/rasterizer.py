@@ -12,7 +12,8 @@ from typing import Optional
 
 import torch
 
-from omnire.rasterization import RasterInputError, RenderOutput, check_raster_inputs
+from omnire.camera import Camera
+from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
 
 from ._build import load_extension
 
@@ -80,43 +81,31 @@ class CpuRasterizer:
         self.num_threads = num_threads
         _ext()  # fail at construction, not at the first render
 
-    def rasterize(
-        self,
-        means: torch.Tensor,
-        quats: torch.Tensor,
-        scales: torch.Tensor,
-        opacities: torch.Tensor,
-        colors: torch.Tensor,
-        viewmat: torch.Tensor,
-        K: torch.Tensor,
-        width: int,
-        height: int,
-        background: Optional[torch.Tensor] = None,
-        near: float = 0.01,
-        far: float = 1e10,
-        eps2d: float = 0.3,
-    ) -> RenderOutput:
-        check_raster_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
-        for name, t in [("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
-                        ("colors", colors), ("viewmat", viewmat), ("K", K)]:
+    def rasterize(self, splats: Splats, camera: Camera, settings: RasterSettings = RasterSettings()) -> RenderOutput:
+        """See :mod:`omnire.rasterization` for the contract (shapes and semantics)."""
+        check_raster_inputs(splats, camera, settings)
+        viewmat, K = camera.world_to_cam, camera.K
+        for name, t in [("means", splats.means), ("quats", splats.quats), ("scales", splats.scales),
+                        ("opacities", splats.opacities), ("colors", splats.colors), ("viewmat", viewmat), ("K", K)]:
             if t.device.type != "cpu":
                 raise RasterInputError(f"{name}: on {t.device}; the cpu rasterizer needs CPU tensors")
-        dtype = torch.float64 if means.dtype == torch.float64 else torch.float32
+        dtype = torch.float64 if splats.means.dtype == torch.float64 else torch.float32
 
         def prep(t: torch.Tensor) -> torch.Tensor:
             return t.to(dtype).contiguous()
 
-        absgrad = torch.zeros(means.shape[0], 2, dtype=dtype)
+        absgrad = torch.zeros(splats.means.shape[0], 2, dtype=dtype)
         nthreads = self.num_threads or torch.get_num_threads()
-        settings = (int(width), int(height), float(near), float(far), float(eps2d), int(nthreads))
+        raster_settings = (int(camera.width), int(camera.height), float(settings.near), float(settings.far),
+                           float(settings.eps2d), int(nthreads))
         acc, dn, alpha, radii, means2d = _RasterizeFn.apply(
-            prep(means), prep(quats), prep(scales), prep(opacities), prep(colors),
+            prep(splats.means), prep(splats.quats), prep(splats.scales), prep(splats.opacities), prep(splats.colors),
             viewmat.detach().to(torch.float64).contiguous(), K.detach().to(torch.float64).contiguous(),
-            absgrad, settings,
+            absgrad, raster_settings,
         )
         rgb = acc
-        if background is not None:
-            rgb = acc + (1.0 - alpha)[..., None] * background.to(dtype)
+        if settings.background is not None:
+            rgb = acc + (1.0 - alpha)[..., None] * settings.background.to(dtype)
         depth = dn / alpha.clamp_min(1e-10)
         return RenderOutput(
             rgb=rgb, depth=depth[..., None], alpha=alpha[..., None], radii=radii, means2d=means2d,

@@ -8,17 +8,38 @@ from typing import Optional
 
 import torch
 
-from omnire.rasterization import ALPHA_THRESHOLD, MAX_ALPHA, TILE_SIZE, TRANSMITTANCE_MIN
+from omnire.camera import Camera
+from omnire.geometry import quat_to_rotmat
+from omnire.rasterization import (
+    ALPHA_THRESHOLD,
+    MAX_ALPHA,
+    TILE_SIZE,
+    TRANSMITTANCE_MIN,
+    RasterSettings,
+    Splats,
+)
 
 
-def dense_rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height,
-                    background=None, near=0.01, far=1e10, eps2d=0.3):
+def raster_call(rasterize, scene: dict, width: int, height: int, **settings):
+    """``rasterize(splats, camera, settings)`` on a scene dict of :func:`random_scene` (means,
+    quats, scales, opacities, colors, viewmat, K) at ``width`` x ``height``; ``settings`` are
+    :class:`~omnire.rasterization.RasterSettings` fields (background, near, far, eps2d)."""
+    splats = Splats(*(scene[k] for k in ("means", "quats", "scales", "opacities", "colors")))
+    camera = Camera.from_world_to_cam(scene["viewmat"], scene["K"], width, height)
+    return rasterize(splats, camera, RasterSettings(**settings))
+
+
+def dense_rasterize(splats: Splats, camera: Camera, settings: RasterSettings = RasterSettings()):
     """Same contract as :meth:`omnire.rasterization.Rasterizer.rasterize`, O(N * H * W) memory.
 
     A Gaussian is evaluated at a pixel iff the pixel's 16x16 tile meets its 3-sigma box (the
     binning rule of the tile rasterizers). Returns dict rgb (H,W,D), depth (H,W,1),
     alpha (H,W,1), radii (N,), means2d (N,2), absgrad2d (N,2) (filled on backward).
     """
+    means, quats, scales, opacities, colors = (splats.means, splats.quats, splats.scales, splats.opacities,
+                                               splats.colors)
+    viewmat, K, width, height = camera.world_to_cam, camera.K, camera.width, camera.height
+    background, near, far, eps2d = settings.background, settings.near, settings.far, settings.eps2d
     N, D = colors.shape
     dt = means.dtype
     R, t = viewmat[:3, :3], viewmat[:3, 3]
@@ -27,14 +48,7 @@ def dense_rasterize(means, quats, scales, opacities, colors, viewmat, K, width, 
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     ok = (z > near) & (z < far)
     zs = torch.where(ok, z, torch.ones_like(z))
-    qn2 = (quats * quats).sum(-1, keepdim=True)
-    ident = torch.tensor([1.0, 0, 0, 0], dtype=dt).expand_as(quats)
-    small = qn2 <= 1e-24
-    q = torch.where(small, ident, quats) / torch.sqrt(torch.where(small, torch.ones_like(qn2), qn2))
-    w, qx, qy, qz = q.unbind(-1)
-    Rq = torch.stack([1 - 2 * (qy**2 + qz**2), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy),
-                      2 * (qx * qy + w * qz), 1 - 2 * (qx**2 + qz**2), 2 * (qy * qz - w * qx),
-                      2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx**2 + qy**2)], -1).reshape(N, 3, 3)
+    Rq = quat_to_rotmat(quats)  # (N, 3, 3); zero quaternions are the identity
     M = Rq * scales[:, None, :]
     cov3 = R @ (M @ M.transpose(1, 2)) @ R.T
     limx_p = (width - cx) / fx + 0.15 * width / fx

@@ -13,7 +13,7 @@ if not OK:
     pytest.skip(f"cpu rasterizer extension unavailable: {REASON}", allow_module_level=True)
 
 from omnire_rasterizer_cpu.rasterizer import CpuRasterizer  # noqa: E402
-from omnire_rasterizer_cpu.testing import dense_rasterize, random_scene  # noqa: E402
+from omnire_rasterizer_cpu.testing import dense_rasterize, random_scene, raster_call  # noqa: E402
 
 INPUTS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -21,7 +21,7 @@ INPUTS = ("means", "quats", "scales", "opacities", "colors")
 def run(fn, scene, width, height, background, seed=7):
     """Render, backprop a random weighted sum of rgb/depth/alpha; return outputs and grads."""
     leaves = {k: v.detach().clone().requires_grad_(k in INPUTS) for k, v in scene.items()}
-    out = fn(**leaves, width=width, height=height, background=background)
+    out = raster_call(fn, leaves, width, height, background=background)
     out = out if isinstance(out, dict) else out.__dict__
     dt = leaves["means"].dtype
     g = torch.Generator().manual_seed(seed)
@@ -122,8 +122,7 @@ def test_means2d_output_gradient():
     grads = []
     for fn in (CpuRasterizer().rasterize, dense_rasterize):
         m = scene["means"].clone().requires_grad_(True)
-        out = fn(m, scene["quats"], scene["scales"], scene["opacities"], scene["colors"], scene["viewmat"],
-                 scene["K"], width, height)
+        out = raster_call(fn, {**scene, "means": m}, width, height)
         out = out if isinstance(out, dict) else out.__dict__
         (out["means2d"] * torch.arange(60, dtype=torch.float64).reshape(30, 2)).sum().backward()
         grads.append(m.grad)

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from omnire.plugins import load_plugins
+from omnire.errors import ConfigError
 from omnire.rasterization import RasterInputError, select_rasterizer
 from omnire_rasterizer_cpu import available
 
@@ -15,7 +16,7 @@ if not OK:
     pytest.skip(f"cpu rasterizer extension unavailable: {REASON}", allow_module_level=True)
 
 from omnire_rasterizer_cpu.rasterizer import CpuRasterizer  # noqa: E402
-from omnire_rasterizer_cpu.testing import dense_rasterize, look_at_camera, random_scene  # noqa: E402
+from omnire_rasterizer_cpu.testing import dense_rasterize, look_at_camera, random_scene, raster_call  # noqa: E402
 
 INPUTS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -23,7 +24,7 @@ INPUTS = ("means", "quats", "scales", "opacities", "colors")
 def render_and_backprop(scene, width, height, dtype=torch.float32, background=None, rast=None):
     rast = rast or CpuRasterizer()
     leaves = {k: v.detach().to(dtype).clone().requires_grad_(k in INPUTS) for k, v in scene.items()}
-    out = rast.rasterize(**leaves, width=width, height=height, background=background)
+    out = raster_call(rast.rasterize, leaves, width, height, background=background)
     loss = out.rgb.sum() + out.depth.sum() + out.alpha.sum() + out.means2d.sum()
     loss.backward()
     for name in ("rgb", "depth", "alpha", "means2d", "absgrad2d"):
@@ -62,7 +63,7 @@ def test_flat_and_needle_gaussians():
     sc2["quats"][:] = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
     sc2["scales"][:, 0] = 0.0  # zero x-extent, axis-aligned: degenerate along x
     leaves = {k: v.float() for k, v in sc2.items()}
-    out = CpuRasterizer().rasterize(**leaves, width=48, height=32, eps2d=0.0)
+    out = raster_call(CpuRasterizer().rasterize, leaves, 48, 32, eps2d=0.0)
     assert torch.isfinite(out.rgb).all() and (out.radii == 0).all()
 
 
@@ -73,7 +74,7 @@ def test_near_plane_and_behind_camera():
                                 [0.0, 0.1, near + 1e-3], [0.2, 0.2, 0.0]], dtype=torch.float64)
     sc["scales"][:] = 0.3
     leaves = {k: v.float().requires_grad_(k in INPUTS) for k, v in sc.items()}
-    out = CpuRasterizer().rasterize(**leaves, width=48, height=32, near=near)
+    out = raster_call(CpuRasterizer().rasterize, leaves, 48, 32, near=near)
     (out.rgb.sum() + out.depth.sum()).backward()
     assert out.radii[0] == 0 and out.radii[1] == 0 and out.radii[4] == 0  # behind / on / at the camera
     assert out.radii[3] > 0  # just in front: huge but drawn
@@ -81,7 +82,7 @@ def test_near_plane_and_behind_camera():
     for k in INPUTS:
         assert torch.isfinite(leaves[k].grad).all(), k
     # also against the brute force in float64 (same culling rule)
-    ref = dense_rasterize(**{k: v.detach().double() for k, v in sc.items()}, width=48, height=32, near=near)
+    ref = raster_call(dense_rasterize, {k: v.detach().double() for k, v in sc.items()}, 48, 32, near=near)
     assert torch.equal(out.radii, ref["radii"])
     torch.testing.assert_close(out.rgb.double(), ref["rgb"], rtol=1e-4, atol=1e-4)
 
@@ -101,7 +102,7 @@ def test_border_and_far_outside():
               viewmat=vm, K=K)
     out, _ = render_and_backprop(sc, width, height)
     assert (out.radii[:4] > 0).all() and (out.radii[4:7] == 0).all() and out.radii[7] > 0
-    ref = dense_rasterize(**sc, width=width, height=height)
+    ref = raster_call(dense_rasterize, sc, width, height)
     torch.testing.assert_close(out.rgb.double(), ref["rgb"], rtol=1e-4, atol=1e-4)
 
 
@@ -118,8 +119,8 @@ def test_zero_and_unnormalised_quats():
     ident = dict(sc)
     ident["quats"] = sc["quats"].clone()
     ident["quats"][:10] = torch.tensor([1.0, 0, 0, 0], dtype=torch.float64)
-    a = CpuRasterizer().rasterize(**sc, width=48, height=32)
-    b = CpuRasterizer().rasterize(**ident, width=48, height=32)
+    a = raster_call(CpuRasterizer().rasterize, sc, 48, 32)
+    b = raster_call(CpuRasterizer().rasterize, ident, 48, 32)
     torch.testing.assert_close(a.rgb, b.rgb, rtol=0, atol=1e-12)
 
 
@@ -132,7 +133,7 @@ def test_extreme_opacity_logits(logit):
         assert float(out.alpha.detach().max()) == 0.0
     else:
         # alpha clamped at 0.99: compare with the brute force, gradient paths included
-        ref = dense_rasterize(**{k: v.detach().double() for k, v in sc.items()}, width=48, height=32)
+        ref = raster_call(dense_rasterize, {k: v.detach().double() for k, v in sc.items()}, 48, 32)
         torch.testing.assert_close(out.rgb.double(), ref["rgb"], rtol=1e-4, atol=1e-4)
 
 
@@ -140,8 +141,8 @@ def test_extreme_opacity_logits(logit):
 def test_odd_image_sizes(width, height):
     sc = random_scene(50, width, height, seed=width * 7 + height, scale_px=2.0)
     out, leaves = render_and_backprop(sc, width, height, torch.float64, background=torch.ones(3, dtype=torch.float64))
-    ref = dense_rasterize(**{k: v.detach() for k, v in sc.items()}, width=width, height=height,
-                          background=torch.ones(3, dtype=torch.float64))
+    ref = raster_call(dense_rasterize, {k: v.detach() for k, v in sc.items()}, width, height,
+                      background=torch.ones(3, dtype=torch.float64))
     torch.testing.assert_close(out.rgb, ref["rgb"], rtol=1e-9, atol=1e-9)
 
 
@@ -149,8 +150,9 @@ def test_zero_gaussians_and_zero_channels():
     vm, K = look_at_camera(20, 10)
     e = torch.zeros(0, 3, dtype=torch.float32)
     bg = torch.tensor([0.1, 0.2, 0.3])
-    out = CpuRasterizer().rasterize(e, torch.zeros(0, 4), e, torch.zeros(0), torch.zeros(0, 3), vm.float(), K.float(),
-                                    20, 10, background=bg)
+    empty = dict(means=e, quats=torch.zeros(0, 4), scales=e, opacities=torch.zeros(0), colors=torch.zeros(0, 3),
+                 viewmat=vm.float(), K=K.float())
+    out = raster_call(CpuRasterizer().rasterize, empty, 20, 10, background=bg)
     assert out.rgb.shape == (10, 20, 3) and torch.allclose(out.rgb, bg.expand(10, 20, 3))
     assert (out.alpha == 0).all() and (out.depth == 0).all() and out.radii.shape == (0,)
     sc = base(n=10)
@@ -166,17 +168,17 @@ def test_non_finite_inputs_raise(name, bad):
     sc[name] = sc[name].clone()
     sc[name].view(-1)[3] = bad
     with pytest.raises(RasterInputError, match=name):
-        CpuRasterizer().rasterize(**sc, width=48, height=32)
+        raster_call(CpuRasterizer().rasterize, sc, 48, 32)
 
 
 def test_bad_shapes_and_devices_raise():
     sc = {k: v.float() for k, v in base(n=8).items()}
     with pytest.raises(RasterInputError, match="scales"):
-        CpuRasterizer().rasterize(**{**sc, "scales": sc["scales"][:, :2]}, width=48, height=32)
+        raster_call(CpuRasterizer().rasterize, {**sc, "scales": sc["scales"][:, :2]}, 48, 32)
     with pytest.raises(RasterInputError, match="negative"):
-        CpuRasterizer().rasterize(**{**sc, "scales": -sc["scales"]}, width=48, height=32)
-    with pytest.raises(RasterInputError, match="image size"):
-        CpuRasterizer().rasterize(**sc, width=0, height=32)
+        raster_call(CpuRasterizer().rasterize, {**sc, "scales": -sc["scales"]}, 48, 32)
+    with pytest.raises(ValueError, match="image size"):
+        raster_call(CpuRasterizer().rasterize, sc, 0, 32)
     with pytest.raises(ValueError):
         CpuRasterizer(num_threads=0)
 
@@ -189,9 +191,9 @@ def test_registered_and_selected():
     assert spec.available(torch.device("cpu")) == (True, "")
     ok, reason = spec.available(torch.device("meta"))
     assert not ok and "CPU" in reason
-    r = select_rasterizer(plugins.rasterizers, "cpu", "cpu", num_threads=1)
+    r = select_rasterizer(plugins, "cpu", "cpu", num_threads=1)
     assert isinstance(r, CpuRasterizer) and r.num_threads == 1
-    auto = select_rasterizer(plugins.rasterizers, "auto", "cpu")
+    auto = select_rasterizer(plugins, "auto", "cpu")
     # gsplat (priority 100) is never available without CUDA, so auto picks cpu here
     if not torch.cuda.is_available():
         assert auto.name == "cpu"
@@ -206,6 +208,6 @@ def test_unavailable_extension_falls_back(monkeypatch):
     assert not ok and "no compiler" in reason
     plugins = load_plugins()
     if "torch" in plugins.rasterizers:
-        assert select_rasterizer(plugins.rasterizers, "auto", "cpu").name == "torch"
-    with pytest.raises(ValueError, match="no compiler"):
-        select_rasterizer(plugins.rasterizers, "cpu", "cpu")
+        assert select_rasterizer(plugins, "auto", "cpu").name == "torch"
+    with pytest.raises(ConfigError, match="no compiler"):
+        select_rasterizer(plugins, "cpu", "cpu")

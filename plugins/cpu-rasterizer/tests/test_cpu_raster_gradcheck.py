@@ -19,7 +19,7 @@ if not OK:
     pytest.skip(f"cpu rasterizer extension unavailable: {REASON}", allow_module_level=True)
 
 from omnire_rasterizer_cpu.rasterizer import CpuRasterizer  # noqa: E402
-from omnire_rasterizer_cpu.testing import random_scene  # noqa: E402
+from omnire_rasterizer_cpu.testing import random_scene, raster_call  # noqa: E402
 
 W, H, D = 24, 20, 3
 INPUTS = ("means", "quats", "scales", "opacities", "colors", "background")
@@ -45,15 +45,13 @@ def test_gradcheck(name, seed):
     def f(x):
         args = dict(sc)
         args[name] = x
-        out = rast.rasterize(args["means"], args["quats"], args["scales"], args["opacities"], args["colors"],
-                             args["viewmat"], args["K"], W, H, background=args["background"])
+        out = raster_call(rast.rasterize, args, W, H, background=args["background"])
         return ((out.rgb * w_rgb).sum() + (out.depth * w_depth).sum() + (out.alpha * w_alpha).sum()
                 + (out.means2d * w_m2d).sum())
 
     x = sc[name].clone().requires_grad_(True)
     # the scene must actually be visible, or the check would pass trivially
-    out = rast.rasterize(sc["means"], sc["quats"], sc["scales"], sc["opacities"], sc["colors"], sc["viewmat"],
-                         sc["K"], W, H)
+    out = raster_call(rast.rasterize, sc, W, H)
     assert int((out.radii > 0).sum()) >= 4 and float(out.alpha.max()) > 0.3
     assert torch.autograd.gradcheck(f, (x,), eps=1e-6, atol=1e-6, rtol=1e-4)
 
@@ -71,8 +69,7 @@ def test_gradcheck_unnormalised_and_flat():
         def f(x, name=name):
             args = dict(sc)
             args[name] = x
-            out = rast.rasterize(args["means"], args["quats"], args["scales"], args["opacities"], args["colors"],
-                                 args["viewmat"], args["K"], W, H)
+            out = raster_call(rast.rasterize, args, W, H)
             return (out.rgb * w).sum() + out.alpha.sum()
 
         x = sc[name].clone().requires_grad_(True)
@@ -92,8 +89,7 @@ def test_float32_gradient_against_own_float32_differences():
     w = torch.randn(H, W, D, generator=g)
 
     def loss(means):
-        out = rast.rasterize(means, sc["quats"], sc["scales"], sc["opacities"], sc["colors"], sc["viewmat"], sc["K"],
-                             W, H)
+        out = raster_call(rast.rasterize, {**sc, "means": means}, W, H)
         return (out.rgb.double() * w.double()).sum()
 
     m = sc["means"].clone().requires_grad_(True)

@@ -14,6 +14,8 @@ if not OK:
 
 from omnire_rasterizer_cpu.rasterizer import CpuRasterizer  # noqa: E402
 from omnire_rasterizer_cpu.testing import random_scene  # noqa: E402
+from omnire.camera import Camera  # noqa: E402
+from omnire.rasterization import RasterSettings, Splats  # noqa: E402
 
 W, H = 48, 32
 STEPS = 2000
@@ -53,8 +55,9 @@ def test_two_thousand_adam_steps_with_densification():
     losses = []
     max_n = 0
     for step in range(STEPS):
-        out = rast.rasterize(params["means"], params["quats"], params["log_scales"].exp(),
-                             torch.sigmoid(params["logit_opac"]), params["colors"], vm, K, W, H, background=bg)
+        out = rast.rasterize(Splats(params["means"], params["quats"], params["log_scales"].exp(),
+                                    torch.sigmoid(params["logit_opac"]), params["colors"]),
+                             Camera.from_world_to_cam(vm, K, W, H), RasterSettings(background=bg))
         loss = (out.rgb - target).abs().mean() + 1e-3 * out.depth.mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()

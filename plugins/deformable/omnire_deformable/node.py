@@ -22,14 +22,22 @@ import numpy as np
 import torch
 from torch import nn
 
-from omnire.camera import PinholeCamera
-from omnire.nn import DeformationMLP, positional_encoding
-from omnire.nodes.actors import ActorNode, ActorPoses, init_box_gaussians, transform_instances
-from omnire.nodes.base import GaussianNodeConfig, NodeContext, ParamGroup
+from omnire.api import (
+    BoxActorConfig,
+    BoxActorNode,
+    Camera,
+    DeformationMLP,
+    NodeContext,
+    NodeOutput,
+    ParamGroup,
+    SceneTime,
+    positional_encoding,
+    transform_instances,
+)
 
 
 @dataclasses.dataclass
-class DeformableConfig(GaussianNodeConfig):
+class DeformableConfig(BoxActorConfig):
     """Deformable actors. Reference network: 8 x 256, skip at 4, 10 + 10 frequencies,
     16-d embeddings, on after 3000 steps; the CPU default is smaller (a flag away)."""
 
@@ -38,8 +46,8 @@ class DeformableConfig(GaussianNodeConfig):
     """Voxel edge (m) for the accumulated in-box LiDAR."""
     max_points_per_instance: int = 3000
     """Cap on LiDAR points per instance."""
-    random_points_per_instance: int = 300
-    """Random points in each box."""
+    max_init_scale: float = 0.1
+    """Largest initial Gaussian scale (m)."""
     mlp_depth: int = 6
     """Hidden layers of the shared network (reference: 8)."""
     mlp_width: int = 128
@@ -52,8 +60,6 @@ class DeformableConfig(GaussianNodeConfig):
     """Per-instance embedding size."""
     warmup_steps: int = 500
     """Steps before the deformation switches on (reference: 3000 of 30k)."""
-    refine_boxes: bool = True
-    """Learn per-frame box pose corrections."""
     box_margin: float = 0.2
     """The box regulariser allows Gaussians this fraction beyond the box half size."""
     lr_deform: float = 8e-3
@@ -62,38 +68,22 @@ class DeformableConfig(GaussianNodeConfig):
     """Final network lr."""
     lr_embedding: float = 1e-3
     """Instance embedding lr."""
-    lr_box_rotation: float = 1e-5
-    """Box rotation refinement lr."""
-    lr_box_translation: float = 5e-4
-    """Box translation refinement lr."""
 
 
-class DeformableNode(ActorNode):
+class DeformableNode(BoxActorNode):
+    config: DeformableConfig
+
     def __init__(self, config: DeformableConfig, context: NodeContext, tracks: list) -> None:
-        super().__init__()
-        self.config = config
-        self.scene_radius = context.scene_radius
-        scene = context.scene
-        self.track_ids = [t.track_id for t in tracks]
-        self.poses = ActorPoses(tracks, scene.train_frames, config.refine_boxes, context.device)
-        params, instance = init_box_gaussians(context, tracks, config.voxel_size, config.max_points_per_instance,
-                                              config.random_points_per_instance, 0.1, config.sh_degree,
-                                              config.init_opacity)
-        for k, v in params.items():
-            self.gaussian_params[k] = nn.Parameter(v)
-        self.gaussian_buffers["instance"] = instance
-        self.register_buffer("half_sizes", torch.as_tensor(np.stack([t.size for t in tracks]) / 2, dtype=torch.float32,
-                                                           device=context.device))
-        ts = np.asarray(scene.frame_timestamps, dtype=np.float64)
+        super().__init__(config, context, tracks)
+        ts = np.asarray(context.scene.frame_timestamps, dtype=np.float64)
         self.t_min, self.t_span = float(ts.min()), float(max(ts.max() - ts.min(), 1e-9))
         c = config
         self.embeddings = nn.Parameter(torch.randn(len(tracks), c.embedding_dim, generator=context.generator).to(context.device) * 0.1)
         in_dim = 3 * 2 * c.pos_freqs + 2 * c.time_freqs + c.embedding_dim
         self.mlp = DeformationMLP(in_dim, c.mlp_depth, c.mlp_width, c.mlp_depth // 2).to(context.device)
-        self._last_offsets: Optional[tuple[torch.Tensor, torch.Tensor]] = None
 
     def deformation(self, local: torch.Tensor, instance: torch.Tensor, time: float):
-        """(M,3) box-local means of instances (M,) at ``time`` -> (d_mu, d_q, d_s)."""
+        """(M,3) box-local means of instances (M,) at ``time`` (seconds) -> (d_mu, d_q, d_s)."""
         c = self.config
         x = local.detach() / self.half_sizes[instance]  # ~[-1, 1] inside the box
         t = torch.full((len(local), 1), (time - self.t_min) / self.t_span, dtype=local.dtype, device=local.device)
@@ -101,39 +91,35 @@ class DeformableNode(ActorNode):
                            self.embeddings[instance]], dim=-1)
         return self.mlp(feats)
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
-                     camera: Optional[PinholeCamera] = None):
-        self._last_offsets = None  # the regulariser only sees what this call renders
-        ids, R, t = self.poses.at(frame)
+    def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
+                     step: Optional[int] = None) -> Optional[NodeOutput]:
+        ids, R, tr = self.poses.at(t)
         if len(ids) == 0:
             return None
         g, rows = self.present_gaussians(ids)
         instance = self.gaussian_buffers["instance"][rows]
+        extras = {}
         if step is None or step >= self.config.warmup_steps:
-            d_mu, d_q, d_s = self.deformation(g.means, instance, time)
+            d_mu, d_q, d_s = self.deformation(g.means, instance, t.seconds)
             q = g.quats / g.quats.norm(dim=-1, keepdim=True).clamp_min(1e-8)
             g = dataclasses.replace(g, means=g.means + d_mu, quats=q + d_q, scales=g.scales + d_s)
-            self._last_offsets = (g.means, instance)
-        return transform_instances(g, instance, ids, R, t), rows
+            extras = {"deformed_local_means": g.means, "instance": instance}
+        return NodeOutput(transform_instances(g, instance, ids, R, tr), rows, t, extras)
 
-    def regularization(self, frame: int, time: float) -> dict[str, torch.Tensor]:
-        """``deformable_box``: mean distance of deformed Gaussians beyond their box (+ margin),
-        for the Gaussians rendered in the current step."""
-        if self._last_offsets is None:
+    def regularization(self, output: NodeOutput) -> dict[str, torch.Tensor]:
+        """``deformable_box``: mean distance of the deformed Gaussians of the rendered view
+        beyond their box (+ margin)."""
+        if "deformed_local_means" not in output.extras:
             return {}
-        means, instance = self._last_offsets
+        means, instance = output.extras["deformed_local_means"], output.extras["instance"]
         limit = self.half_sizes[instance] * (1 + self.config.box_margin)
         return {"deformable_box": torch.relu(means.abs() - limit).sum(-1).mean()}
-
-    def gaussian_lrs(self):
-        return self.config.gaussian_lrs(self.scene_radius)
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config
         return (super().param_groups()
                 + [ParamGroup("deformation_mlp", list(self.mlp.parameters()), c.lr_deform, c.lr_deform_final),
-                   ParamGroup("instance_embeddings", [self.embeddings], c.lr_embedding)]
-                + self.poses.param_groups(c.lr_box_rotation, c.lr_box_translation))
+                   ParamGroup("instance_embeddings", [self.embeddings], c.lr_embedding)])
 
     @torch.no_grad()
     def extra_prune_mask(self) -> torch.Tensor:

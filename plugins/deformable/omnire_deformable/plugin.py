@@ -1,13 +1,11 @@
-from omnire.hookspecs import hookimpl
-from omnire.registry import NodeTypeSpec
+from omnire.api import NodeTypeSpec, hookimpl, track_displacement, usable_track, visible_in_cameras
 
 MIN_DISPLACEMENT = 0.5
 """Actors of category "other" that move less than this (m) stay in the background."""
 
 
-def _accepts(track, scene) -> bool:
-    from omnire.nodes.actors import track_displacement, usable_track, visible_in_cameras
-
+def accepts(track, scene) -> bool:
+    """Non-rigid actors a camera sees; "other" actors only when they move."""
     if track.category == "other" and (track.stationary or track_displacement(track) < MIN_DISPLACEMENT):
         return False  # cones, signs, parked things: folded into the background
     return usable_track(track) and visible_in_cameras(track, scene)
@@ -19,4 +17,4 @@ def omnire_register_node_types(registry) -> None:
 
     registry.register(NodeTypeSpec(
         "deformable", "non-rigid actors: box-local Gaussians + one shared deformation network (time, embedding)",
-        DeformableConfig, categories=frozenset({"human", "cyclist", "other"}), priority=5, accepts=_accepts))
+        DeformableConfig, categories=frozenset({"human", "cyclist", "other"}), priority=5, accepts=accepts))

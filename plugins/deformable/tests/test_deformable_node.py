@@ -8,9 +8,9 @@ import torch
 from omnire.data.images import ImageCache
 from omnire.nodes.base import NodeContext
 from omnire_deformable.node import DeformableConfig, DeformableNode
-from omnire_deformable.plugin import _accepts
+from omnire_deformable.plugin import accepts
 
-from scene_helpers import make_tiny_scene
+from scene_helpers import make_tiny_scene, gaussians_at, regularization_at
 
 
 def build(tmp_path, **kw):
@@ -27,8 +27,8 @@ def build(tmp_path, **kw):
 
 def test_starts_as_identity_and_trains_only_present_instances(tmp_path):
     scene, node = build(tmp_path, warmup_steps=10)
-    g_warm, rows = node.gaussians_at(4, 0.4, step=0)  # warm-up: canonical Gaussians
-    g, rows2 = node.gaussians_at(4, 0.4, step=100)
+    g_warm, rows = gaussians_at(node, 4, 0.4, step=0)  # warm-up: canonical Gaussians
+    g, rows2 = gaussians_at(node, 4, 0.4, step=100)
     assert torch.equal(rows, rows2)
     torch.testing.assert_close(g.means, g_warm.means)  # zero-initialised output layer
     assert torch.unique(node.gaussian_buffers["instance"][rows]).tolist() == [0]  # walker absent at frame 4
@@ -38,19 +38,19 @@ def test_starts_as_identity_and_trains_only_present_instances(tmp_path):
     with torch.no_grad():
         node.mlp.out.weight.normal_(0, 0.01)
     node.zero_grad()
-    g, _ = node.gaussians_at(4, 0.4, step=100)
+    g, _ = gaussians_at(node, 4, 0.4, step=100)
     (g.means.sum() + g.scales.sum()).backward()
     assert node.embeddings.grad[0].abs().sum() > 0 and node.embeddings.grad[1].abs().sum() == 0
 
 
 def test_box_regulariser(tmp_path):
     scene, node = build(tmp_path)
-    node.gaussians_at(0, 0.0, step=None)
-    assert float(node.regularization(0, 0.0)["deformable_box"]) < 1e-3  # only in-box LiDAR margins
+    gaussians_at(node, 0, 0.0, step=None)
+    assert float(regularization_at(node, 0, 0.0)["deformable_box"]) < 1e-3  # only in-box LiDAR margins
     with torch.no_grad():
         node.mlp.out.bias[:3] = 5.0  # push everything 5 m out of the boxes
-    node.gaussians_at(0, 0.0, step=None)
-    reg = node.regularization(0, 0.0)["deformable_box"]
+    gaussians_at(node, 0, 0.0, step=None)
+    reg = regularization_at(node, 0, 0.0)["deformable_box"]
     assert float(reg) > 5.0
     reg.backward()
     assert node.mlp.out.bias.grad[:3].abs().sum() > 0
@@ -60,15 +60,15 @@ def test_static_other_actors_fold_into_background(tmp_path):
     scene = make_tiny_scene(tmp_path)
     cone = copy.deepcopy(scene.tracks[0])
     cone.category, cone.poses[:, 0, 3] = "other", 7.0
-    assert not _accepts(cone, scene)
+    assert not accepts(cone, scene)
     cone.poses[:, 0, 3] = 7.0 + np.arange(len(cone.poses))
-    assert _accepts(cone, scene)
+    assert accepts(cone, scene)
 
 
 def test_regulariser_forgets_frames_without_instances(tmp_path):
     scene, node = build(tmp_path)
-    node.gaussians_at(0, 0.0, step=None)
+    gaussians_at(node, 0, 0.0, step=None)
     scene.tracks[0].present[:] = False
     node.poses.present[:] = False
-    assert node.gaussians_at(1, 0.1, step=None) is None
-    assert node.regularization(1, 0.1) == {}
+    assert gaussians_at(node, 1, 0.1, step=None) is None
+    assert regularization_at(node, 1, 0.1) == {}

@@ -43,11 +43,20 @@ import numpy as np
 import torch
 from torch import nn
 
-from omnire.camera import PinholeCamera, in_frustum
-from omnire.gaussians import Gaussians
-from omnire.nn import DeformationMLP, positional_encoding
-from omnire.nodes.background import BackgroundConfig, init_background_params
-from omnire.nodes.base import Node, NodeContext, ParamGroup
+from omnire.api import (
+    BackgroundConfig,
+    Camera,
+    DeformationMLP,
+    GaussianNode,
+    Gaussians,
+    NodeContext,
+    NodeOutput,
+    ParamGroup,
+    SceneTime,
+    in_frustum,
+    init_background_params,
+    positional_encoding,
+)
 
 
 @dataclasses.dataclass
@@ -81,18 +90,17 @@ class DeformableFieldConfig(BackgroundConfig):
     frustum (-1: no culling, every Gaussian through the MLP)."""
 
 
-class DeformableFieldNode(Node):
+class DeformableFieldNode(GaussianNode):
     """All Gaussians of the scene, deformed by one MLP of (position, time).
 
     gaussian_params: the standard six keys only (the field is shared, not per-Gaussian).
     """
 
+    config: DeformableFieldConfig
+
     def __init__(self, config: DeformableFieldConfig, context: NodeContext, tracks: Optional[list] = None) -> None:
-        super().__init__()
-        self.config = config
-        self.scene_radius = context.scene_radius
-        for k, v in init_background_params(config, context).items():
-            self.gaussian_params[k] = nn.Parameter(v)
+        super().__init__(config, context)
+        self.init_gaussians(context, lambda: init_background_params(config, context))
         scene = context.scene
         ts = np.asarray(scene.frame_timestamps, dtype=np.float64)
         self.t_min = float(ts.min())
@@ -102,7 +110,8 @@ class DeformableFieldNode(Node):
         # Position normalisation, fixed at build time (buffers: saved with checkpoints).
         cams = np.stack([c.cam_to_world[f, :3, 3] for c in scene.cameras for f in scene.train_frames])
         center = torch.as_tensor(cams.mean(0), dtype=torch.float32, device=context.device)
-        extent = (self.gaussian_params["means"].detach() - center).norm(dim=-1).max().clamp_min(1.0)
+        means = self.gaussian_params["means"].detach()
+        extent = (means - center).norm(dim=-1).max().clamp_min(1.0) if len(means) else torch.ones(())
         self.register_buffer("pos_center", center)
         self.register_buffer("pos_scale", extent.reshape(()))
         c = config
@@ -125,24 +134,21 @@ class DeformableFieldNode(Node):
         feats = torch.cat([positional_encoding(x, c.pos_freqs), positional_encoding(tt, c.time_freqs)], dim=-1)
         return self.mlp(feats)
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
-                     camera: Optional[PinholeCamera] = None):
+    def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
+                     step: Optional[int] = None) -> Optional[NodeOutput]:
         p = self.gaussian_params
         if step is not None and step < self.config.warmup_steps:
-            return Gaussians.from_params(p), None
+            return NodeOutput(Gaussians.from_params(p), None, t)
         rows = None  # every row, in order
         if camera is not None and self.config.cull_margin >= 0:
             # A Gaussian outside the frustum still paints it up to ~3 sigma away: add its extent.
             reach = self.config.cull_margin + 3.0 * torch.exp(p["scales"].detach().max(dim=-1).values)
             rows = torch.nonzero(in_frustum(p["means"].detach(), camera, reach)).squeeze(1)
         g = Gaussians.from_params(p, rows)
-        d_mu, d_q, d_s = self.deform(g.means, self.normalised_time(time), step)
+        d_mu, d_q, d_s = self.deform(g.means, self.normalised_time(t.seconds), step)
         q = g.quats / g.quats.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         g = dataclasses.replace(g, means=g.means + d_mu, quats=q + d_q, scales=g.scales + d_s)
-        return g, rows
-
-    def gaussian_lrs(self):
-        return self.config.gaussian_lrs(self.scene_radius)
+        return NodeOutput(g, rows, t)
 
     def param_groups(self) -> list[ParamGroup]:
         c = self.config

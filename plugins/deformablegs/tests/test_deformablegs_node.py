@@ -14,7 +14,7 @@ from omnire.strategy import AbsGradStrategy, DensifyConfig
 from omnire.trainer import TrainConfig, Trainer, TrainerConfig
 from omnire.nn import positional_encoding
 from omnire_deformablegs.node import DeformableFieldConfig, DeformableFieldNode
-from scene_helpers import make_tiny_scene
+from scene_helpers import make_tiny_scene, gaussians_at
 
 
 @pytest.fixture
@@ -56,20 +56,20 @@ def test_warmup_renders_canonical_then_deforms(scene):
     with torch.no_grad():
         node.mlp.out.weight.normal_(0, 0.1)
     p = node.gaussian_params
-    g, rows = node.gaussians_at(0, 0.0, step=0)  # warm-up: the canonical Gaussians themselves
+    g, rows = gaussians_at(node, 0, 0.0, step=0)  # warm-up: the canonical Gaussians themselves
     assert rows is None and g.means is p["means"]
-    g2, _ = node.gaussians_at(0, 0.0, step=10)
-    g3, _ = node.gaussians_at(0, 0.0, step=None)  # evaluation: always deformed
+    g2, _ = gaussians_at(node, 0, 0.0, step=10)
+    g3, _ = gaussians_at(node, 0, 0.0, step=None)  # evaluation: always deformed
     assert not torch.allclose(g2.means, p["means"])
-    torch.testing.assert_close(g3.means, node.gaussians_at(0, 0.0, step=None)[0].means)  # no noise at eval
+    torch.testing.assert_close(g3.means, gaussians_at(node, 0, 0.0, step=None)[0].means)  # no noise at eval
     # time enters the field: another frame time moves the Gaussians differently
-    g4, _ = node.gaussians_at(5, 0.5, step=None)
+    g4, _ = gaussians_at(node, 5, 0.5, step=None)
     assert not torch.allclose(g3.means, g4.means)
 
 
 def test_fresh_field_is_identity(scene):
     node = build(scene)
-    g, _ = node.gaussians_at(2, 0.2, step=None)
+    g, _ = gaussians_at(node, 2, 0.2, step=None)
     p = node.gaussian_params
     torch.testing.assert_close(g.means, p["means"])
     torch.testing.assert_close(g.scales, p["scales"])
@@ -80,7 +80,7 @@ def test_gradients_reach_every_mlp_parameter_and_position_input_is_stopped(scene
     node = build(scene)
     with torch.no_grad():
         node.mlp.out.weight.normal_(0, 0.1)
-    g, _ = node.gaussians_at(1, 0.1, step=None)
+    g, _ = gaussians_at(node, 1, 0.1, step=None)
     w = torch.randn_like(g.means)
     loss = (g.means * w).sum() + g.scales.square().sum() + g.quats.square().sum()
     loss.backward()
@@ -120,7 +120,7 @@ def test_short_training_lowers_loss(scene, tmp_path):
     def mean_l1() -> float:
         with torch.no_grad():
             views = trainer.train_views[::2]
-            return sum(float((trainer.model.render(v, 0).rgb - trainer.target(v)).abs().mean())
+            return sum(float((trainer.recon.render_view(v).rgb - trainer.observations.image(v)).abs().mean())
                        for v in views) / len(views)
 
     before = mean_l1()
@@ -141,16 +141,14 @@ def test_frustum_culling_deforms_only_what_the_camera_sees_and_renders_the_same(
     with torch.no_grad():
         node.mlp.out.weight.normal_(0, 0.01)
         # Far behind every camera: never deformed, never rendered.
-        node.gaussian_params["means"][:50] = trainer.model.camera(trainer.train_views[0])[1][:3, 3] - 1e4
+        node.gaussian_params["means"][:50] = trainer.recon.camera(trainer.train_views[0]).center - 1e4
     view = trainer.train_views[0]
-    K, c2w, W, H = trainer.model.camera(view)
-    from omnire.camera import PinholeCamera
-    g, rows = node.gaussians_at(view.frame, 0.1, step=None, camera=PinholeCamera(K, c2w, W, H))
+    g, rows = gaussians_at(node, view.frame, 0.1, step=None, camera=trainer.recon.camera(view))
     assert rows is not None and 0 < len(rows) < node.num_gaussians and not bool((rows < 50).any())
-    full, _ = node.gaussians_at(view.frame, 0.1, step=None)  # no camera: every Gaussian
+    full, _ = gaussians_at(node, view.frame, 0.1, step=None)  # no camera: every Gaussian
     torch.testing.assert_close(g.means, full.means[rows])
     with torch.no_grad():
-        culled = trainer.model.render(view, 0).rgb
+        culled = trainer.recon.render_view(view).rgb
         node.config.cull_margin = -1.0  # off: the paper's behaviour
-        uncull = trainer.model.render(view, 0).rgb
+        uncull = trainer.recon.render_view(view).rgb
     torch.testing.assert_close(culled, uncull, atol=1e-4, rtol=0)

@@ -12,7 +12,8 @@ from typing import Optional
 
 import torch
 
-from omnire.rasterization import RasterInputError, RenderOutput, check_raster_inputs
+from omnire.camera import Camera
+from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
 
 
 class GsplatRasterizer:
@@ -22,27 +23,17 @@ class GsplatRasterizer:
         # packed=False keeps (N, ...) shaped per-Gaussian outputs (means2d, radii, absgrad).
         self.packed = packed
 
-    def rasterize(
-        self,
-        means: torch.Tensor,
-        quats: torch.Tensor,
-        scales: torch.Tensor,
-        opacities: torch.Tensor,
-        colors: torch.Tensor,
-        viewmat: torch.Tensor,
-        K: torch.Tensor,
-        width: int,
-        height: int,
-        background: Optional[torch.Tensor] = None,
-        near: float = 0.01,
-        far: float = 1e10,
-        eps2d: float = 0.3,
-    ) -> RenderOutput:
-        check_raster_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
+    def rasterize(self, splats: Splats, camera: Camera, settings: RasterSettings = RasterSettings()) -> RenderOutput:
+        """See :mod:`omnire.rasterization` for the contract (shapes and semantics)."""
+        check_raster_inputs(splats, camera, settings)
+        means, quats, scales, opacities, colors = (splats.means, splats.quats, splats.scales, splats.opacities,
+                                                   splats.colors)
         if means.device.type != "cuda":
             raise RasterInputError(f"means: on {means.device}; the gsplat rasterizer needs CUDA tensors")
         import gsplat
 
+        viewmat, K, width, height = camera.world_to_cam, camera.K, camera.width, camera.height
+        near, far, eps2d, background = settings.near, settings.far, settings.eps2d, settings.background
         N, D = colors.shape
         dev = means.device
         renders, alphas, meta = gsplat.rasterization(

@@ -6,10 +6,18 @@ import math
 import pytest
 import torch
 
+from omnire.camera import Camera
+from omnire.errors import ConfigError
 from omnire.plugins import load_plugins
-from omnire.rasterization import RasterInputError, select_rasterizer
+from omnire.rasterization import RasterInputError, RasterSettings, Splats, select_rasterizer
 from omnire_rasterizer_gsplat import available
 from omnire_rasterizer_gsplat.rasterizer import GsplatRasterizer
+
+
+def raster_call(rasterize, sc: dict, width: int, height: int, **settings):
+    """The contract's call on a :func:`scene` dict."""
+    splats = Splats(*(sc[k] for k in ("means", "quats", "scales", "opacities", "colors")))
+    return rasterize(splats, Camera.from_world_to_cam(sc["viewmat"], sc["K"], width, height), RasterSettings(**settings))
 
 
 def scene(n=200, width=64, height=48, device="cpu", seed=0):
@@ -40,21 +48,21 @@ def test_unavailable_on_cpu_says_why():
     if not torch.cuda.is_available():
         ok, reason = available(torch.device("cuda"))
         assert not ok and "torch.cuda.is_available()" in reason
-        with pytest.raises(ValueError, match="gsplat"):
-            select_rasterizer(load_plugins().rasterizers, "gsplat", "cuda")
+        with pytest.raises(ConfigError, match="gsplat"):
+            select_rasterizer(load_plugins(), "gsplat", "cuda")
 
 
 def test_input_checks_run_before_gsplat():
     sc = scene(8)
     sc["means"][2, 1] = float("nan")
     with pytest.raises(RasterInputError, match="means"):
-        GsplatRasterizer().rasterize(**sc, width=64, height=48)
+        raster_call(GsplatRasterizer().rasterize, sc, 64, 48)
     sc = scene(8)
     sc["scales"][0, 0] = float("inf")
     with pytest.raises(RasterInputError, match="scales"):
-        GsplatRasterizer().rasterize(**sc, width=64, height=48)
+        raster_call(GsplatRasterizer().rasterize, sc, 64, 48)
     with pytest.raises(RasterInputError, match="CUDA"):
-        GsplatRasterizer().rasterize(**scene(8), width=64, height=48)
+        raster_call(GsplatRasterizer().rasterize, scene(8), 64, 48)
 
 
 needs_gsplat = pytest.mark.skipif(not available("cuda")[0], reason=f"gsplat backend unavailable: {available('cuda')[1]}")
@@ -67,7 +75,7 @@ def test_matches_cpu_rasterizer_on_cuda():
     outs = {}
     for name, rast, dev in [("gsplat", GsplatRasterizer(), "cuda"), ("cpu", cpu_mod.CpuRasterizer(), "cpu")]:
         leaves = {k: v.to(dev).requires_grad_(k not in ("viewmat", "K")) for k, v in sc.items()}
-        out = rast.rasterize(**leaves, width=64, height=48, background=torch.tensor([0.1, 0.2, 0.3], device=dev))
+        out = raster_call(rast.rasterize, leaves, 64, 48, background=torch.tensor([0.1, 0.2, 0.3], device=dev))
         (out.rgb.sum() + 0.1 * out.depth.sum() + out.alpha.sum()).backward()
         outs[name] = dict(rgb=out.rgb.detach().cpu(), alpha=out.alpha.detach().cpu(), absgrad=out.absgrad2d.cpu(),
                           g_means=leaves["means"].grad.cpu(), g_colors=leaves["colors"].grad.cpu())

@@ -6,13 +6,11 @@ Ablations of the paper, as flags:
 - no body-pose refinement:  --method.nodes.smpl.no-refine-poses
 - no box refinement:        --method.nodes.rigid.no-refine-boxes (and .smpl / .deformable likewise)
 """
-from omnire.hookspecs import hookimpl
-from omnire.registry import MethodSpec
+from omnire.api import CommandSpec, MethodSpec, hookimpl
 
 
 def omnire_method():
-    from omnire.method import MethodConfig
-    from omnire.nodes.background import BackgroundConfig
+    from omnire.api import BackgroundConfig, MethodConfig
     from omnire_deformable.node import DeformableConfig
     from omnire_rigid.node import RigidConfig
     from omnire_sky.node import SkyConfig
@@ -30,3 +28,15 @@ def omnire_method():
 @hookimpl
 def omnire_register_methods(registry) -> None:
     registry.register(MethodSpec("omnire", "OmniRe: sky + background + rigid + SMPL + deformable actors", omnire_method))
+
+
+def _bench_skip(argv: list[str], plugins) -> int:
+    from omnire_method.bench_skip import main
+
+    return main(argv, plugins)
+
+
+@hookimpl
+def omnire_register_commands(registry) -> None:
+    registry.register(CommandSpec("bench skip", "cost of what a scene does not need: omnire without humans vs a "
+                                  "baseline, actors absent from the rendered frames", _bench_skip))

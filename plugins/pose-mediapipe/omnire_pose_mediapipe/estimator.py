@@ -17,7 +17,7 @@ from typing import Any, Optional
 import numpy as np
 
 from omnire.data.images import image_size, read_image
-from omnire.humanpose import HumanTracklet
+from omnire_body.humanpose import HumanTracklet
 from omnire_pose_mediapipe.ik import landmarks_to_smpl
 
 TORSO = (11, 12, 23, 24)
@@ -46,7 +46,7 @@ class MediapipeEstimator:
 
     def __post_init__(self) -> None:
         if self.joints is None:
-            from omnire.body.template import load_template
+            from omnire_body.template import load_template
 
             t = load_template()
             self.joints, self.parents = t.joints, t.parents

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnire.humanpose import _align
+from omnire_body.humanpose import align_directions
 
 # MediaPipe pose landmark indices (person's left/right).
 MP = {"l_shoulder": 11, "r_shoulder": 12, "l_elbow": 13, "r_elbow": 14, "l_wrist": 15, "r_wrist": 16,
@@ -58,7 +58,7 @@ def landmarks_to_smpl(landmarks: np.ndarray, joints: np.ndarray, parents: np.nda
         parent_W = W[parents[j]]
         if j in solved:
             c = solved[j]
-            Q = _align(parent_W @ (joints[c] - joints[j]), P[c] - P[j])
+            Q = align_directions(parent_W @ (joints[c] - joints[j]), P[c] - P[j])
             local[j] = parent_W.T @ Q @ parent_W
         W[j] = parent_W @ local[j]
     return G, local[1:]

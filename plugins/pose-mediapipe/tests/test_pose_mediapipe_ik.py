@@ -1,7 +1,8 @@
 """IK from 3D landmarks to SMPL rotations reproduces the joint positions of a known pose."""
 import numpy as np
 
-from omnire.body import axis_angle_to_matrix, forward_kinematics, load_template
+from omnire.geometry import axis_angle_to_rotmat
+from omnire_body import forward_kinematics, load_template
 from omnire_pose_mediapipe.ik import MP, SMPL_FROM_MP, landmarks_to_smpl
 
 
@@ -11,8 +12,8 @@ def test_ik_recovers_limb_positions():
     aa = np.zeros((23, 3))
     for j in (1, 2, 4, 5, 7, 8, 16, 17, 18, 19):
         aa[j - 1] = rng.normal(0, 0.5, 3)
-    go = axis_angle_to_matrix(rng.normal(0, 1.0, 3))
-    posed, _ = forward_kinematics(t.joints, t.parents, go, axis_angle_to_matrix(aa))
+    go = axis_angle_to_rotmat(rng.normal(0, 1.0, 3))
+    posed, _ = forward_kinematics(t.joints, t.parents, go, axis_angle_to_rotmat(aa))
     landmarks = np.zeros((33, 3))
     for j, name in SMPL_FROM_MP.items():
         landmarks[MP[name]] = posed[j] * 0.9 + 0.3  # other bone lengths and origin: only directions count

@@ -46,11 +46,23 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from omnire.camera import PinholeCamera
-from omnire.gaussians import Gaussians
-from omnire.nodes.background import BackgroundConfig, init_background_params, lidar_points_for_init
-from omnire.nodes.base import Node, NodeContext, init_gaussian_params
-from omnire.pointcloud import colour_from_images, far_shell, knn_scales, to_tensor, voxel_downsample
+from omnire.api import (
+    BackgroundConfig,
+    Camera,
+    GaussianNode,
+    Gaussians,
+    NodeContext,
+    NodeOutput,
+    SceneTime,
+    colour_from_images,
+    far_shell,
+    init_background_params,
+    init_gaussian_params,
+    knn_scales,
+    lidar_points_for_init,
+    to_tensor,
+    voxel_downsample,
+)
 
 PVG_KEYS = ("life_peak", "life_span", "velocity")
 """Extra per-Gaussian keys: tau (N,), log beta (N,), v (N,3)."""
@@ -152,21 +164,21 @@ def init_pvg_params(config: PVGConfig, context: NodeContext, to_pvg_time) -> dic
     return {k: v.to(context.device) for k, v in params.items()}
 
 
-class PVGNode(Node):
+class PVGNode(GaussianNode):
     """All Gaussians of the scene as periodic vibration Gaussians.
 
     gaussian_params: standard keys + life_peak (N,), life_span (N,) log, velocity (N,3);
     all are densified by the core strategy like any other per-Gaussian tensor.
     """
 
+    gaussian_keys = GaussianNode.gaussian_keys + PVG_KEYS
+    config: PVGConfig
+
     def __init__(self, config: PVGConfig, context: NodeContext, tracks: Optional[list] = None) -> None:
-        super().__init__()
-        self.config = config
-        self.scene_radius = context.scene_radius
+        super().__init__(config, context)
         ts = np.asarray(context.scene.frame_timestamps, dtype=np.float64)
         self.t_mid = float(0.5 * (ts.min() + ts.max()))
-        for k, v in init_pvg_params(config, context, self.pvg_time).items():
-            self.gaussian_params[k] = nn.Parameter(v)
+        self.init_gaussians(context, lambda: init_pvg_params(config, context, self.pvg_time))
 
     def pvg_time(self, time: float) -> float:
         """Seconds -> PVG time units (0 at mid-sequence)."""
@@ -186,10 +198,10 @@ class PVGNode(Node):
         return pvg_state(p["means"], p["opacities"], p["life_peak"], p["life_span"], p["velocity"], t,
                          self.config.period)
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
-                     camera: Optional[PinholeCamera] = None):
+    def gaussians_at(self, time: SceneTime, camera: Optional[Camera] = None,
+                     step: Optional[int] = None) -> Optional[NodeOutput]:
         c = self.config
-        t = self.pvg_time(time)
+        t = self.pvg_time(time.seconds)
         if step is not None and c.smooth_prob > 0 and float(torch.rand(())) < c.smooth_prob:
             # Temporally smooth training: predict the state at t from t - dt by linear motion.
             dt = (2.0 * float(torch.rand(())) - 1.0) * c.smooth_dt
@@ -198,15 +210,15 @@ class PVGNode(Node):
         else:
             means, logits = self.state_at(t)
         p = self.gaussian_params
-        return Gaussians(means, p["quats"], p["scales"], logits, p["sh0"], p["shN"]), None
+        return NodeOutput(Gaussians(means, p["quats"], p["scales"], logits, p["sh0"], p["shN"]), None, time)
 
-    def regularization(self, frame: int, time: float) -> dict[str, torch.Tensor]:
+    def regularization(self, output: NodeOutput) -> dict[str, torch.Tensor]:
         # Sparse velocity: most of a street scene is static.
         return {"pvg_velocity": self.average_velocity().abs().sum(-1).mean()}
 
     def gaussian_lrs(self):
         c = self.config
-        lrs = c.gaussian_lrs(self.scene_radius)
+        lrs = super().gaussian_lrs()
         lrs.update(life_peak=(c.lr_life_peak, None), life_span=(c.lr_life_span, None),
                    velocity=(c.lr_velocity * self.scene_radius, None))
         return lrs

@@ -15,7 +15,7 @@ from omnire.plugins import load_plugins
 from omnire.strategy import AbsGradStrategy, DensifyConfig
 from omnire.trainer import TrainConfig, Trainer, TrainerConfig
 from omnire_pvg.node import PVG_KEYS, PVGConfig, PVGNode, pvg_state
-from scene_helpers import make_tiny_scene
+from scene_helpers import make_tiny_scene, gaussians_at
 
 
 @pytest.fixture
@@ -83,7 +83,7 @@ def test_gradients_reach_pvg_parameters(scene):
     node = build(scene)
     with torch.no_grad():
         node.gaussian_params["velocity"].normal_()
-    g, rows = node.gaussians_at(1, 0.13, step=None)  # between sweeps: sin != 0 for every Gaussian
+    g, rows = gaussians_at(node, 1, 0.13, step=None)  # between sweeps: sin != 0 for every Gaussian
     assert rows is None
     loss = (g.means * torch.randn_like(g.means)).sum() + torch.sigmoid(g.opacities).sum()
     loss.backward()
@@ -97,11 +97,11 @@ def test_eval_is_deterministic_and_smoothing_follows_formula(scene):
     with torch.no_grad():
         node.gaussian_params["velocity"].normal_()
         node.gaussian_params["life_span"].fill_(math.log(0.1))
-    a, _ = node.gaussians_at(2, 0.2, step=None)
-    b, _ = node.gaussians_at(2, 0.2, step=None)
+    a, _ = gaussians_at(node, 2, 0.2, step=None)
+    b, _ = gaussians_at(node, 2, 0.2, step=None)
     torch.testing.assert_close(a.means, b.means)
     torch.manual_seed(3)
-    g, _ = node.gaussians_at(2, 0.2, step=5)
+    g, _ = gaussians_at(node, 2, 0.2, step=5)
     torch.manual_seed(3)
     torch.rand(())  # the smoothing coin
     dt = (2.0 * float(torch.rand(())) - 1.0) * 0.05
@@ -121,7 +121,7 @@ def test_densification_keeps_extra_keys_consistent(scene):
         p["life_peak"].add_(torch.randn_like(p["life_peak"]) * 0.01)
     opt = Optimizers({"pvg": node}, max_steps=100)
     # give Adam non-zero moments so their resizing is checked too
-    (node.gaussians_at(1, 0.13)[0].means.sum() + p["life_span"].sum()).backward()
+    (gaussians_at(node, 1, 0.13)[0].means.sum() + p["life_span"].sum()).backward()
     opt.step(0)
     n = node.num_gaussians
     before = {k: v.detach().clone() for k, v in p.items()}
@@ -160,7 +160,7 @@ def test_short_training_lowers_loss(scene, tmp_path):
     def mean_l1() -> float:
         with torch.no_grad():
             views = trainer.train_views[::2]
-            return sum(float((trainer.model.render(v, 0).rgb - trainer.target(v)).abs().mean())
+            return sum(float((trainer.recon.render_view(v).rgb - trainer.observations.image(v)).abs().mean())
                        for v in views) / len(views)
 
     before = mean_l1()

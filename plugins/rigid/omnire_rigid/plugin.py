@@ -1,10 +1,8 @@
-from omnire.hookspecs import hookimpl
-from omnire.registry import MethodSpec, NodeTypeSpec
+from omnire.api import MethodSpec, NodeTypeSpec, hookimpl, usable_track, visible_in_cameras
 
 
-def _accepts(track, scene) -> bool:
-    from omnire.nodes.actors import usable_track, visible_in_cameras
-
+def accepts(track, scene) -> bool:
+    """Vehicles with a usable box that some camera sees."""
     return usable_track(track) and visible_in_cameras(track, scene)
 
 
@@ -13,13 +11,12 @@ def omnire_register_node_types(registry) -> None:
     from omnire_rigid.node import RigidConfig
 
     registry.register(NodeTypeSpec("rigid", "rigid actors in box-local space with per-frame box poses (refined)",
-                                   RigidConfig, categories=frozenset({"vehicle"}), priority=10, accepts=_accepts))
+                                   RigidConfig, categories=frozenset({"vehicle"}), priority=10, accepts=accepts))
 
 
 def streetgs_method():
     """StreetGS as the OmniRe paper reimplements it: background + rigid vehicles + sky."""
-    from omnire.method import MethodConfig
-    from omnire.nodes.background import BackgroundConfig
+    from omnire.api import BackgroundConfig, MethodConfig
     from omnire_rigid.node import RigidConfig
     from omnire_sky.node import SkyConfig
 

@@ -12,11 +12,11 @@ from omnire.gaussians import rgb_to_sh0
 from omnire.nodes.base import NodeContext
 from omnire.data.images import ImageCache
 from omnire.plugins import load_plugins
-from omnire.rasterization import select_rasterizer
+from omnire.rasterization import RasterSettings, Splats, select_rasterizer
 from omnire_rigid.node import RigidConfig, RigidNode
-from omnire_rigid.plugin import _accepts
+from omnire_rigid.plugin import accepts
 
-from scene_helpers import make_tiny_scene
+from scene_helpers import make_tiny_scene, gaussians_at
 
 
 def context(scene, excluded=()):
@@ -48,13 +48,10 @@ def textured_box(node, n=400, seed=0):
 
 
 def render(node, scene, view, rast):
-    g, _ = node.gaussians_at(view.frame, 0.0)
-    cam = scene.cameras[view.camera]
-    K = torch.as_tensor(cam.intrinsics, dtype=torch.float32)
-    c2w = torch.as_tensor(cam.cam_to_world[view.frame], dtype=torch.float32)
-    out = rast.rasterize(g.means, g.quats, g.activated_scales, g.activated_opacities, g.colors(c2w[:3, 3], 0),
-                         torch.linalg.inv(c2w), K, cam.width, cam.height, background=torch.zeros(3))
-    return out.rgb
+    g, _ = gaussians_at(node, view.frame, 0.0)
+    camera = scene.camera(view)
+    splats = Splats(g.means, g.quats, g.activated_scales, g.activated_opacities, g.colors(camera.center, 0))
+    return rast.rasterize(splats, camera, RasterSettings(background=torch.zeros(3))).rgb
 
 
 def test_world_placement_and_absence(tmp_path):
@@ -62,12 +59,12 @@ def test_world_placement_and_absence(tmp_path):
     track = scene.tracks[0]
     track.present[2] = False
     node = RigidNode(RigidConfig(), context(scene), [track])
-    g, rows = node.gaussians_at(0, 0.0)
+    g, rows = gaussians_at(node, 0, 0.0)
     local = node.gaussian_params["means"][rows]
     expect = local.detach() @ torch.as_tensor(track.poses[0][:3, :3], dtype=torch.float32).T + \
         torch.as_tensor(track.poses[0][:3, 3], dtype=torch.float32)
     torch.testing.assert_close(g.means.detach(), expect)
-    assert node.gaussians_at(2, 0.0) is None  # absent: nothing, no cost
+    assert gaussians_at(node, 2, 0.0) is None  # absent: nothing, no cost
     assert node.num_gaussians > 300
 
 
@@ -80,7 +77,7 @@ def test_box_refinement_moves_poses_toward_truth(tmp_path):
     rng = np.random.default_rng(1)
     for f in range(4):
         noisy.poses[f] = truth.poses[f] @ yaw_pose(*rng.normal(0, 0.25, 2), 0.0, rng.normal(0, 0.06))
-    rast = select_rasterizer(load_plugins().rasterizers, "torch")
+    rast = select_rasterizer(load_plugins(), "torch")
     ref = RigidNode(RigidConfig(refine_boxes=False), context(scene), [truth])
     textured_box(ref)
     views = [v for v in scene.views(np.arange(4))]
@@ -94,7 +91,7 @@ def test_box_refinement_moves_poses_toward_truth(tmp_path):
     def error():
         errs = []
         for f in range(4):
-            _, R, t = node.poses.at(f)
+            _, R, t = node.poses.at_frame(f)
             errs.append(float(np.linalg.norm(t[0].detach().numpy() - truth.poses[f][:3, 3])))
         return np.mean(errs)
 
@@ -114,7 +111,7 @@ def test_bad_tracks(tmp_path):
     bad = copy.deepcopy(scene.tracks[0])
     bad.track_id, bad.size = "flat-car", np.array([4.0, 0.0, 1.5])
     with pytest.warns(UserWarning, match="flat-car"):
-        assert not _accepts(bad, scene)
+        assert not accepts(bad, scene)
     nan = copy.deepcopy(scene.tracks[0])
     nan.track_id = "nan-car"
     nan.poses[1, 1, 3] = np.nan
@@ -129,6 +126,6 @@ def test_bad_tracks(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         node = RigidNode(RigidConfig(), context(scene), [single])
-    assert node.gaussians_at(0, 0.0) is None
-    g, _ = node.gaussians_at(1, 0.0)
+    assert gaussians_at(node, 0, 0.0) is None
+    g, _ = gaussians_at(node, 1, 0.0)
     assert torch.isfinite(g.means).all() and len(g) > 0

@@ -1,3 +1,3 @@
-from omnire_sky.node import SkyConfig, SkyNode, view_directions
+from omnire_sky.node import SkyConfig, SkyNode, equirect_coordinates
 
-__all__ = ["SkyConfig", "SkyNode", "view_directions"]
+__all__ = ["SkyConfig", "SkyNode", "equirect_coordinates"]

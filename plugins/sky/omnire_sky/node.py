@@ -14,8 +14,7 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
-from omnire.camera import PinholeCamera
-from omnire.nodes.base import Node, NodeConfig, NodeContext, ParamGroup
+from omnire.api import Camera, EnvironmentNode, NodeConfig, NodeContext, ParamGroup, SceneTime
 
 
 @dataclasses.dataclass
@@ -33,36 +32,31 @@ class SkyConfig(NodeConfig):
     """Learning rate of the map."""
 
 
-def view_directions(K: torch.Tensor, cam_to_world: torch.Tensor, width: int, height: int) -> torch.Tensor:
-    """(H, W, 3) unit world directions through pixel centres of a pinhole camera."""
-    v, u = torch.meshgrid(torch.arange(height, device=K.device, dtype=K.dtype) + 0.5,
-                          torch.arange(width, device=K.device, dtype=K.dtype) + 0.5, indexing="ij")
-    d = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)
-    d = d @ cam_to_world[:3, :3].T
-    return d / d.norm(dim=-1, keepdim=True)
+def equirect_coordinates(directions: torch.Tensor) -> torch.Tensor:
+    """(..., 3) unit world directions (z up) -> (..., 2) grid_sample coordinates of the
+    equirectangular map: x = azimuth / pi in [-1, 1], y = -elevation / (pi / 2) (top row = up)."""
+    azimuth = torch.atan2(directions[..., 1], directions[..., 0]) / math.pi
+    elevation = -torch.asin(directions[..., 2].clamp(-1, 1)) / (math.pi / 2)
+    return torch.stack([azimuth, elevation], -1)
 
 
-class SkyNode(Node):
-    is_environment = True
-
+class SkyNode(EnvironmentNode):
     def __init__(self, config: SkyConfig, context: NodeContext, tracks: Optional[list] = None) -> None:
         super().__init__()
         self.config = config
         self.env = torch.nn.Parameter(torch.full((1, 3, config.height, config.width), config.init_value,
                                                  device=context.device))
 
-    def render_environment(self, K, cam_to_world, width: int, height: int, frame: int, time: float) -> torch.Tensor:
-        """(H, W, 3) sky colour for every pixel."""
-        d = view_directions(K, cam_to_world, width, height)
-        azimuth = torch.atan2(d[..., 1], d[..., 0]) / math.pi  # [-1, 1]
-        elevation = -torch.asin(d[..., 2].clamp(-1, 1)) / (math.pi / 2)  # +z (up) -> -1 (top row)
-        grid = torch.stack([azimuth, elevation], -1)[None]
+    def render_environment(self, camera: Camera, t: SceneTime) -> torch.Tensor:
+        """(H, W, 3) sky colour for every pixel of ``camera``."""
+        grid = equirect_coordinates(camera.pixel_directions())[None]
         out = F.grid_sample(self.env, grid, mode="bilinear", padding_mode="border", align_corners=False)
         return out[0].permute(1, 2, 0).clamp(0, 1)
 
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
-                     camera: Optional[PinholeCamera] = None):
-        return None
+    def environment_map(self) -> torch.Tensor:
+        """(H, W, 3) the equirectangular map in [0, 1] (rows: elevation +90 to -90 degrees,
+        columns: azimuth -180 to 180 degrees about +z, from +x towards +y)."""
+        return self.env.detach()[0].permute(1, 2, 0).clamp(0, 1)
 
     def param_groups(self) -> list[ParamGroup]:
         return [ParamGroup("sky", [self.env], self.config.lr)]

@@ -2,9 +2,8 @@
 
 import torch
 
-from omnire.data.images import ImageCache
-from omnire.nodes.base import NodeContext
-from omnire_sky.node import SkyConfig, SkyNode, view_directions
+from omnire.api import Camera, ImageCache, NodeContext, SceneTime
+from omnire_sky.node import SkyConfig, SkyNode
 
 from scene_helpers import LOOK_X, make_tiny_scene
 
@@ -13,7 +12,7 @@ def test_view_directions_brute_force():
     K = torch.tensor([[30.0, 0, 20], [0, 25.0, 10], [0, 0, 1]], dtype=torch.float64)
     c2w = torch.eye(4, dtype=torch.float64)
     c2w[:3, :3] = torch.as_tensor(LOOK_X)
-    d = view_directions(K, c2w, 40, 20)
+    d = Camera(K, c2w, 40, 20).pixel_directions()
     for v, u in [(0, 0), (7, 33), (19, 39)]:
         ray = torch.tensor([(u + 0.5 - 20) / 30, (v + 0.5 - 10) / 25, 1.0], dtype=torch.float64)
         ray = c2w[:3, :3] @ ray
@@ -30,10 +29,10 @@ def test_environment_lookup_and_gradient(tmp_path):
     K = torch.tensor([[20.0, 0, 24], [0, 20.0, 16], [0, 0, 1]])
     c2w = torch.eye(4)
     c2w[:3, :3] = torch.as_tensor(LOOK_X, dtype=torch.float32)
-    img = sky.render_environment(K, c2w, 48, 32, 0, 0.0)
+    img = sky.render_environment(Camera(K, c2w, 48, 32), SceneTime(0, 0.0))
     assert img.shape == (32, 48, 3)
     torch.testing.assert_close(img[2, 24], torch.tensor([0.1, 0.2, 0.9]))  # looking up: sky colour
     torch.testing.assert_close(img[30, 24], torch.tensor([0.3, 0.3, 0.3]))  # looking down
     img.sum().backward()
     assert sky.env.grad is not None and sky.env.grad.abs().sum() > 0
-    assert sky.gaussians_at(0, 0.0) is None and sky.num_gaussians == 0
+    assert sky.gaussians_at(SceneTime(0, 0.0)) is None and sky.num_gaussians == 0

@@ -1,6 +1,6 @@
 """Batched forward kinematics and linear blend skinning in torch (SMPL conventions).
 
-Same maths as the float64 numpy reference :mod:`omnire.body.lbs` (tested against it), but
+Same maths as the float64 numpy reference :mod:`omnire_body.lbs` (tested against it), but
 batched over P people and with sparse per-point skinning weights: each point keeps its K
 largest joint weights (K = the most joints any template vertex uses, 6 for the shipped
 template), so blending costs (M, K, 12) instead of (M, 24, 12).

@@ -34,6 +34,7 @@ absent people cost nothing.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
 from typing import Optional
 
@@ -41,15 +42,30 @@ import numpy as np
 import torch
 from torch import nn
 
-from omnire.body.template import BodyTemplate, load_template
-from omnire.camera import PinholeCamera
-from omnire.data.scene import HumanPoseSequence
-from omnire.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
-from omnire.humanpose import neutral_body_pose, prepare_human_poses
-from omnire.nodes.actors import ActorNode, ActorPoses, axis_angle_to_rotmat
-from omnire.nodes.base import GaussianNodeConfig, NodeContext, ParamGroup, init_gaussian_params
-from omnire.pointcloud import colour_from_images, knn_scales
+from omnire.api import (
+    ActorNode,
+    Camera,
+    GaussianNodeConfig,
+    HumanPoseSequence,
+    NodeContext,
+    NodeOutput,
+    ParamGroup,
+    SceneTime,
+    axis_angle_to_rotmat,
+    colour_from_images,
+    frame_blend,
+    init_gaussian_params,
+    knn_scales,
+    quat_multiply,
+    rotmat_to_quat,
+    slerp_rotmats,
+    train_frame_bracket,
+)
+from omnire_body.humanpose import neutral_body_pose
+from omnire_body.template import BodyTemplate, load_template
 from omnire_smpl.lbs import blend_transforms, forward_kinematics, sparse_weights
+
+log = logging.getLogger("omnire.nodes.smpl")
 
 
 @dataclasses.dataclass
@@ -113,38 +129,31 @@ def rot6(R: torch.Tensor) -> torch.Tensor:
     return R[..., :, :2].reshape(*R.shape[:-2], 6)
 
 
-def slerp_rotmats(R0: torch.Tensor, R1: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """SLERP between (..., 3, 3) rotations with weights ``w`` (...,)."""
-    q0, q1 = rotmat_to_quat(R0), rotmat_to_quat(R1)
-    dot = (q0 * q1).sum(-1, keepdim=True)
-    q1 = torch.where(dot < 0, -q1, q1)
-    theta = torch.arccos(dot.abs().clamp(max=1 - 1e-7))
-    s = torch.sin(theta)
-    w = w[..., None]
-    near = s < 1e-5
-    s_safe = torch.where(near, torch.ones_like(s), s)
-    a = torch.where(near, 1 - w, torch.sin((1 - w) * theta) / s_safe)
-    b = torch.where(near, w, torch.sin(w * theta) / s_safe)
-    return quat_to_rotmat(a * q0 + b * q1)
-
-
 class SMPLNode(ActorNode):
+    config: SMPLConfig
+
     def __init__(self, config: SMPLConfig, context: NodeContext, tracks: list) -> None:
-        super().__init__()
-        self.config = config
-        self.scene_radius = context.scene_radius
+        super().__init__(config, context, tracks, config.refine_boxes)
         scene = context.scene
         device = context.device
         template = load_template(config.smpl_model)
         self.template_source = template.source
         self.parents = [int(p) for p in template.parents]
-        # Normally done by the node type's accepts(); repeated here (idempotent) so a node
-        # built directly still finds a sequence for every person.
-        self.pose_paths = prepare_human_poses(scene, joints=template.joints)
-        rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
-        self.track_ids = [t.track_id for t in tracks]
         I, F = len(tracks), scene.num_frames
-        self.poses = ActorPoses(tracks, scene.train_frames, config.refine_boxes, device)
+        refine = config.refine_poses
+        self.delta_orient = nn.Parameter(torch.zeros(I, F, 3, device=device), requires_grad=refine)
+        self.delta_body = nn.Parameter(torch.zeros(I, F, 23, 3, device=device), requires_grad=refine)
+        self._init_interpolation(tracks, scene.train_frames, device)
+        if context.restoring:  # every tensor below comes from the checkpoint
+            for name in ("joints", "canon_bbox", "base_orient", "base_body"):
+                self.register_buffer(name, torch.zeros(0, device=device))
+            self.init_gaussians(context, dict)
+            return
+        missing = [t.track_id for t in tracks if t.track_id not in scene.human_poses]
+        if missing:
+            raise ValueError(f"smpl node: no pose sequence for tracks {missing}; the node type's prepare() fills "
+                             "scene.human_poses before tracks are assigned")
+        rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
         go_rel = np.tile(np.eye(3), (I, F, 1, 1))
         body = np.tile(np.eye(3), (I, F, 23, 1, 1))
         joints_all, bbox, points, colours, owners, weights, scales = [], [], [], [], [], [], []
@@ -167,15 +176,13 @@ class SMPLNode(ActorNode):
             weights.append(template.weights[sel])
             owners.append(np.full(n, i))
             scales.append(np.clip(knn_scales(pts), 0.003, 0.05))
-            colours.append(self._initial_colours(scene, context.images, track, seq, go_rel[i], body[i],
+            colours.append(self._initial_colours(scene, context.images, track, go_rel[i], body[i],
                                                  template, verts, joints, sel))
-            self.pose_paths.setdefault(track.track_id, seq.source)
         pts = torch.as_tensor(np.concatenate(points), dtype=torch.float32)
         params = init_gaussian_params(pts, torch.as_tensor(np.concatenate(colours), dtype=torch.float32),
                                       torch.as_tensor(np.concatenate(scales), dtype=torch.float32),
                                       config.sh_degree, config.init_opacity, context.generator)
-        for k, v in params.items():
-            self.gaussian_params[k] = nn.Parameter(v.to(device))
+        self.init_gaussians(context, lambda: {k: v.to(device) for k, v in params.items()})
         idx, w = sparse_weights(torch.as_tensor(np.concatenate(weights), dtype=torch.float32))
         self.gaussian_buffers["instance"] = torch.as_tensor(np.concatenate(owners), dtype=torch.long, device=device)
         self.gaussian_buffers["skin_joints"] = idx.to(device)
@@ -184,41 +191,27 @@ class SMPLNode(ActorNode):
         self.register_buffer("canon_bbox", torch.as_tensor(np.stack(bbox), dtype=torch.float32, device=device))
         self.register_buffer("base_orient", torch.as_tensor(go_rel, dtype=torch.float32, device=device))
         self.register_buffer("base_body", torch.as_tensor(body, dtype=torch.float32, device=device))
-        refine = config.refine_poses
-        self.delta_orient = nn.Parameter(torch.zeros(I, F, 3, device=device), requires_grad=refine)
-        self.delta_body = nn.Parameter(torch.zeros(I, F, 23, 3, device=device), requires_grad=refine)
-        self._init_interpolation(tracks, scene.train_frames, device)
-        self._report(tracks)
+        self._report(tracks, scene)
 
     # ------------------------------------------------------------------ set-up helpers
     def _init_interpolation(self, tracks: list, train_frames: np.ndarray, device) -> None:
         """Per person and frame: the training frames of that person to SLERP from (prev,
         next, weight); (f, f, 0) for its own training frames."""
-        I, F = len(tracks), self.base_body.shape[1]
-        prev = np.tile(np.arange(F), (I, 1))
-        nxt = prev.copy()
-        w = np.zeros((I, F))
+        I, F = len(tracks), self.delta_body.shape[1]
+        prev, nxt, w = (np.tile(np.arange(F), (I, 1)), np.tile(np.arange(F), (I, 1)), np.zeros((I, F)))
         train = np.zeros(F, bool)
         train[np.asarray(train_frames, dtype=int)] = True
         for i, track in enumerate(tracks):
-            own = np.flatnonzero(track.present & train)
-            if len(own) == 0:
-                continue
-            for f in np.flatnonzero(~(track.present & train)):
-                lo, hi = own[own < f], own[own > f]
-                p = int(lo[-1]) if len(lo) else int(hi[0])
-                n = int(hi[0]) if len(hi) else int(lo[-1])
-                prev[i, f], nxt[i, f] = p, n
-                w[i, f] = 0.0 if n == p else (f - p) / (n - p)
+            prev[i], nxt[i], w[i] = train_frame_bracket(np.flatnonzero(track.present & train), F)
         self.register_buffer("interp_prev", torch.as_tensor(prev, device=device), persistent=False)
         self.register_buffer("interp_next", torch.as_tensor(nxt, device=device), persistent=False)
         self.register_buffer("interp_w", torch.as_tensor(w, dtype=torch.float32, device=device), persistent=False)
 
     @staticmethod
-    def _initial_colours(scene, images, track, seq, go_rel, body, template, verts, joints, sel) -> np.ndarray:
+    def _initial_colours(scene, images, track, go_rel, body, template, verts, joints, sel) -> np.ndarray:
         """Colours of the selected canonical vertices, posed at the training frame where the
         person's box is closest to a camera and projected into that frame's images."""
-        from omnire.body.lbs import lbs
+        from omnire_body.lbs import lbs
 
         frames = np.intersect1d(track.frames(), scene.train_frames)
         if images is None or len(frames) == 0:
@@ -232,14 +225,18 @@ class SMPLNode(ActorNode):
         colours, _ = colour_from_images(world, scene, images, np.array([f]))
         return colours
 
-    def _report(self, tracks: list) -> None:
+    def _report(self, tracks: list, scene) -> None:
+        """One summary line on the console; the per-pedestrian pose sources were logged by
+        the node type's scene preparation (the run's log file)."""
+        from collections import Counter
+
         from rich.console import Console
 
-        console = Console(stderr=True, highlight=False)
-        console.print(f"[bold]smpl[/]: {len(tracks)} pedestrians, template {Path(self.template_source).name}, "
-                      f"{self.num_gaussians} Gaussians")
-        for t in tracks:
-            console.print(f"  {t.track_id} ({t.class_name}): {self.pose_paths.get(t.track_id, '?')}")
+        sources = Counter(scene.human_poses[t.track_id].source for t in tracks)
+        Console(stderr=True, highlight=False).print(
+            f"[bold]smpl[/]: {len(tracks)} pedestrians (poses: "
+            + ", ".join(f"{n} {src}" for src, n in sorted(sources.items()))
+            + f"), template {Path(self.template_source).name}, {self.num_gaussians} Gaussians")
 
     # ------------------------------------------------------------------ poses
     def _refined(self, ids: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
@@ -252,8 +249,8 @@ class SMPLNode(ActorNode):
         return R
 
     def pose_rotations(self, ids: torch.Tensor, frame: int) -> torch.Tensor:
-        """(P, 24, 3, 3) rotations of people ``ids`` at ``frame``; frames that are not
-        training frames of a person are SLERPed between its neighbouring training frames."""
+        """(P, 24, 3, 3) rotations of people ``ids`` at recorded ``frame``; frames that are
+        not training frames of a person are SLERPed between its neighbouring training frames."""
         p, n, w = self.interp_prev[ids, frame], self.interp_next[ids, frame], self.interp_w[ids, frame]
         R_p = self._refined(ids, p)
         interp = w > 0
@@ -263,15 +260,24 @@ class SMPLNode(ActorNode):
         mixed = slerp_rotmats(R_p[interp], R_n, w[interp][:, None].expand(-1, 24))
         return R_p.index_put((torch.nonzero(interp).flatten(),), mixed)
 
+    def rotations_at(self, ids: torch.Tensor, t: SceneTime) -> torch.Tensor:
+        """(P, 24, 3, 3) rotations of people ``ids`` at moment ``t``, SLERPed between the
+        enclosing recorded frames when ``t`` lies between them."""
+        f0, f1, w = frame_blend(t, self.delta_body.shape[1])
+        R0 = self.pose_rotations(ids, f0)
+        if w == 0.0:
+            return R0
+        return slerp_rotmats(R0, self.pose_rotations(ids, f1), torch.full(R0.shape[:2], w, dtype=R0.dtype))
+
     # ------------------------------------------------------------------ Node API
-    def gaussians_at(self, frame: int, time: float, step: Optional[int] = None,
-                     camera: Optional[PinholeCamera] = None):
-        ids, R_box, t_box = self.poses.at(frame)
+    def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
+                     step: Optional[int] = None) -> Optional[NodeOutput]:
+        ids, R_box, t_box = self.poses.at(t)
         if len(ids) == 0:
             return None  # absent people cost nothing
         instance = self.gaussian_buffers["instance"]
         g, rows = self.present_gaussians(ids)
-        rots = self.pose_rotations(ids, frame)  # (P, 24, 3, 3)
+        rots = self.rotations_at(ids, t)  # (P, 24, 3, 3)
         eye = torch.eye(3, device=rots.device).expand(len(ids), 1, 3, 3)
         _, A = forward_kinematics(self.joints[ids], self.parents, torch.cat([eye, rots[:, 1:]], 1))
         lookup = torch.full((self.poses.num_instances,), -1, dtype=torch.long, device=ids.device)
@@ -284,12 +290,14 @@ class SMPLNode(ActorNode):
         means = torch.einsum("mij,mj->mi", R_full, g.means) + torch.einsum("mij,mj->mi", R_tot[slot], T[:, :, 3]) \
             + t_box[slot]
         quats = quat_multiply(rotmat_to_quat(R_full), g.quats)
-        return dataclasses.replace(g, means=means, quats=quats), rows
+        return NodeOutput(dataclasses.replace(g, means=means, quats=quats), rows, t)
 
-    def regularization(self, frame: int, time: float) -> dict[str, torch.Tensor]:
-        if not self.config.refine_poses or self.poses.num_instances == 0:
+    def regularization(self, output: NodeOutput) -> dict[str, torch.Tensor]:
+        """``pose_smoothness`` around the rendered (recorded) frame, for the people present there."""
+        frame = output.time.index
+        if not self.config.refine_poses or self.poses.num_instances == 0 or frame is None:
             return {}
-        F = self.base_body.shape[1]
+        F = self.delta_body.shape[1]
         # d random in 1..max_offset, shortened near the ends of the log rather than skipped
         d = min(int(torch.randint(1, self.config.smoothness_max_offset + 1, (1,))), frame, F - 1 - frame)
         if d <= 0:
@@ -300,9 +308,6 @@ class SMPLNode(ActorNode):
             return {}
         r = [rot6(self.pose_rotations(ids, f)) for f in (frame - d, frame, frame + d)]
         return {"pose_smoothness": 0.5 * (r[0] + r[2] - 2 * r[1]).abs().mean()}
-
-    def gaussian_lrs(self):
-        return self.config.gaussian_lrs(self.scene_radius)
 
     def param_groups(self) -> list[ParamGroup]:
         groups = super().param_groups()

@@ -1,47 +1,40 @@
 """Registers the ``smpl`` node type.
 
-Where the human pose pipeline runs: the node type's ``accepts`` runs
-:func:`omnire.humanpose.prepare_human_poses` once per scene, before any node is built, so
-node choice sees the result: dataparser-provided sequences (e.g. ``humanpose/smpl.pkl``)
-are SLERP-completed; pedestrians without one get poses from the best available registered
-pose estimator (``omnire_register_pose_estimators``) matched by 2D-box IoU; the rest start
-from a neutral standing pose. Every visible pedestrian with a usable box therefore takes
-the SMPL node (priority 20, above the deformable node); the node's log line and each
-sequence's ``source`` say which path a pedestrian took.
+Scene preparation (the node type's ``prepare``, run once per scene before tracks are
+assigned, only when a method enables this node type): the human pose pipeline of
+``omnire_body.humanpose`` fills ``scene.human_poses``. Sequences a dataparser provided (e.g.
+``humanpose/smpl.pkl``) are SLERP-completed; pedestrians without one get poses from the
+best available registered pose estimator (``omnire_register_pose_estimators``) matched by
+2D-box IoU; the rest start from a neutral standing pose. No estimator is built when every
+pedestrian already has a sequence (or the scene has none). ``accepts`` then takes every
+visible pedestrian with a usable box and a pose sequence (priority 20, above the deformable
+node). Each pedestrian's path is written to the run's log; the node prints a summary.
 """
 from __future__ import annotations
 
-import weakref
+import logging
 
-from omnire.hookspecs import hookimpl
-from omnire.registry import NodeTypeSpec
+from omnire.api import NodeTypeSpec, hookimpl, usable_track, visible_in_cameras
 
-_prepared: dict[int, weakref.ref] = {}
+log = logging.getLogger("omnire.nodes.smpl")
 
 
-def ensure_human_poses(scene) -> None:
-    """Run the pose pipeline once per scene object."""
-    ref = _prepared.get(id(scene))
-    if ref is not None and ref() is scene:
-        return
-    from omnire.humanpose import prepare_human_poses, select_estimator
-    from omnire.plugins import load_plugins
+def prepare_scene(scene, plugins) -> None:
+    """Fill ``scene.human_poses`` for every pedestrian track (see the module docstring)."""
+    from omnire_body.humanpose import prepare_human_poses, select_estimator
 
     humans = [t for t in scene.tracks if t.category == "human"]
     estimator = None
     if any(t.track_id not in scene.human_poses for t in humans):
-        estimator = select_estimator(load_plugins().pose_estimators, "auto")
-    prepare_human_poses(scene, estimator=estimator)
-    _prepared[id(scene)] = weakref.ref(scene)
+        estimator = select_estimator(plugins.pose_estimators, "auto")
+    paths = prepare_human_poses(scene, estimator=estimator)
+    for track_id, path in sorted(paths.items()):
+        log.info("smpl: pedestrian %s: %s", track_id, path)
 
 
-def _accepts(track, scene) -> bool:
-    from omnire.nodes.actors import usable_track, visible_in_cameras
-
-    if not (usable_track(track) and visible_in_cameras(track, scene)):
-        return False
-    ensure_human_poses(scene)
-    return track.track_id in scene.human_poses
+def accepts(track, scene) -> bool:
+    """Pedestrians a camera sees, with a usable box and a pose sequence."""
+    return track.track_id in scene.human_poses and usable_track(track) and visible_in_cameras(track, scene)
 
 
 @hookimpl
@@ -50,4 +43,4 @@ def omnire_register_node_types(registry) -> None:
 
     registry.register(NodeTypeSpec(
         "smpl", "pedestrians as Gaussians skinned by a body template (SMPL skeleton), per-frame body-pose refinement",
-        SMPLConfig, categories=frozenset({"human"}), priority=20, accepts=_accepts))
+        SMPLConfig, categories=frozenset({"human"}), priority=20, accepts=accepts, prepare=prepare_scene))

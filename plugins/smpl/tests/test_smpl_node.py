@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from omnire.body import axis_angle_to_matrix, lbs, load_template
+from omnire.geometry import axis_angle_to_rotmat
+from omnire_body import lbs, load_template
 from omnire.data.images import ImageCache
 from omnire.data.scene import ActorTrack, HumanPoseSequence
-from omnire.humanpose import BODY_TO_BOX
+from omnire_body.humanpose import BODY_TO_BOX
 from omnire.io.safe_pickle import UnsafePickleError
 from omnire.method import MethodConfig
 from omnire.nodes.background import BackgroundConfig
@@ -20,9 +21,9 @@ from omnire.strategy import DensifyConfig
 from omnire.trainer import TrainConfig, Trainer, TrainerConfig
 from omnire_smpl.lbs import blend_transforms, forward_kinematics, sparse_weights
 from omnire_smpl.node import SMPLConfig, SMPLNode, person_template
-from omnire_smpl.plugin import _accepts
+from omnire_smpl.plugin import accepts, prepare_scene
 
-from scene_helpers import make_tiny_scene
+from scene_helpers import make_tiny_scene, gaussians_at, regularization_at
 
 
 def add_pedestrian(scene, track_id="ped-1", x=6.0, y=-1.2, present=None, with_poses=True, seed=0):
@@ -38,8 +39,8 @@ def add_pedestrian(scene, track_id="ped-1", x=6.0, y=-1.2, present=None, with_po
     scene.tracks.append(track)
     if with_poses:
         rng = np.random.default_rng(seed)
-        bp = axis_angle_to_matrix(rng.normal(0, 0.3, (F, 23, 3)))
-        go = poses[:, :3, :3] @ BODY_TO_BOX @ axis_angle_to_matrix(rng.normal(0, 0.1, (F, 3)))
+        bp = axis_angle_to_rotmat(rng.normal(0, 0.3, (F, 23, 3)))
+        go = poses[:, :3, :3] @ BODY_TO_BOX @ axis_angle_to_rotmat(rng.normal(0, 0.1, (F, 3)))
         scene.human_poses[track_id] = HumanPoseSequence(track_id, go, bp, np.zeros(0), np.ones(F, bool), "test")
     return track
 
@@ -63,8 +64,8 @@ def test_identity_pose_returns_template():
 def test_batched_lbs_matches_numpy_reference():
     t = load_template()
     rng = np.random.default_rng(3)
-    go = axis_angle_to_matrix(rng.normal(0, 0.5, (2, 3)))
-    bp = axis_angle_to_matrix(rng.normal(0, 0.4, (2, 23, 3)))
+    go = axis_angle_to_rotmat(rng.normal(0, 0.5, (2, 3)))
+    bp = axis_angle_to_rotmat(rng.normal(0, 0.4, (2, 23, 3)))
     ref = lbs(t, go, bp, pose_blend=False).vertices  # (2, V, 3) float64
     J = torch.as_tensor(np.stack([t.joints, t.joints]), dtype=torch.float32)
     rots = torch.as_tensor(np.concatenate([go[:, None], bp], 1), dtype=torch.float32)
@@ -84,9 +85,9 @@ def test_node_places_people_like_numpy_and_skips_absent(tmp_path):
     present[2] = False
     track = add_pedestrian(scene, present=present)
     node = SMPLNode(SMPLConfig(gaussians_per_person=0, refine_boxes=False), context(scene), [track])
-    assert node.gaussians_at(2, 0.0) is None  # absent: nothing, no cost
+    assert gaussians_at(node, 2, 0.0) is None  # absent: nothing, no cost
     f = 3
-    g, rows = node.gaussians_at(f, 0.0)
+    g, rows = gaussians_at(node, f, 0.0)
     assert len(rows) == node.num_gaussians == load_template().num_vertices
     # Independent placement: numpy LBS of the scaled person template (identity root),
     # then the world orientation of the sequence and the box centre.
@@ -110,14 +111,14 @@ def test_gradients_reach_pose_parameters_and_smoothness(tmp_path):
     scene = make_tiny_scene(tmp_path, frames=12, holdout=4)
     track = add_pedestrian(scene)
     node = SMPLNode(SMPLConfig(gaussians_per_person=500), context(scene), [track])
-    g, _ = node.gaussians_at(5, 0.0)
+    g, _ = gaussians_at(node, 5, 0.0)
     g.means.sum().backward()
     assert node.delta_body.grad[0, 5].abs().sum() > 0 and node.delta_orient.grad[0, 5].abs().sum() > 0
     assert node.delta_body.grad[0, 6].abs().sum() == 0  # other frames untouched
     assert node.poses.delta_t.grad[0, 5].abs().sum() > 0
     node.zero_grad()
     torch.manual_seed(0)
-    reg = node.regularization(6, 0.0)
+    reg = regularization_at(node, 6, 0.0)
     assert set(reg) == {"pose_smoothness"} and float(reg["pose_smoothness"].detach()) > 0  # random poses are not smooth
     reg["pose_smoothness"].backward()
     assert node.delta_body.grad.abs().sum() > 0
@@ -156,19 +157,21 @@ def test_smpl_pickle_that_runs_code_is_refused(tmp_path):
     assert not (tmp_path / "pwned").exists()
 
 
-def test_accepts_fills_neutral_poses_for_pedestrians_without_estimates(tmp_path):
+def test_prepare_fills_neutral_poses_and_accepts_is_pure(tmp_path):
     scene = make_tiny_scene(tmp_path)
     track = add_pedestrian(scene, with_poses=False)
     hidden = add_pedestrian(scene, "behind", x=-30.0, with_poses=False)
-    assert _accepts(track, scene)
-    assert not _accepts(hidden, scene)  # no camera sees it
+    assert not accepts(track, scene) and scene.human_poses == {}  # a predicate: prepares nothing
+    prepare_scene(scene, load_plugins(disabled={"pose_mediapipe", "omnire-pose-mediapipe"}))
+    assert accepts(track, scene)
+    assert not accepts(hidden, scene)  # no camera sees it
     seq = scene.human_poses[track.track_id]
     assert seq.source == "neutral" and not seq.valid.any()
     # Facing the heading: the body's forward axis (+z) is the box x axis.
     np.testing.assert_allclose(seq.global_orient[0] @ [0, 0, 1.0], track.poses[0][:3, 0], atol=1e-9)
     # Arms hang down: the elbows are below the shoulders in the neutral pose.
     t = load_template()
-    from omnire.body import forward_kinematics as fk
+    from omnire_body import forward_kinematics as fk
 
     J, _ = fk(t.joints, t.parents, np.eye(3), seq.body_pose[0])
     assert J[18, 1] < J[16, 1] - 0.2 and J[19, 1] < J[17, 1] - 0.2
@@ -185,7 +188,7 @@ def test_tiny_training_run(tmp_path):
         sh_degree_interval=15, rasterizer="auto")  # native cpu if built, else torch
     tc = TrainerConfig(max_steps=12, output_dir=tmp_path, run_name="run", progress=False)
     trainer = Trainer(TrainConfig("smpl-test", "test", method, None, tc), load_plugins(), argv=[], scene=scene)
-    assert trainer.model.assignment["smpl"] == ["ped-1"]
+    assert trainer.recon.assignment["smpl"] == ["ped-1"]
     node = trainer.model.nodes["smpl"]
     before, n0 = node.delta_body.detach().clone(), node.num_gaussians
     torch.manual_seed(1)
@@ -194,7 +197,7 @@ def test_tiny_training_run(tmp_path):
     assert any("pose_smoothness" in s for s in stats)
     assert node.num_gaussians != n0  # densified through the generic strategy
     assert node.gaussian_buffers["skin_weights"].shape[0] == node.num_gaussians
-    g, _ = node.gaussians_at(1, 0.0)
+    g, _ = gaussians_at(node, 1, 0.0)
     assert torch.isfinite(g.means).all()
     for p in trainer.model.parameters():
         assert torch.isfinite(p).all()

@@ -8,28 +8,7 @@ import dataclasses
 
 import torch
 
-
-def normalize_quats(quats: torch.Tensor) -> torch.Tensor:
-    """(N, 4) wxyz, any norm -> unit quats; zero quats become the identity (finite grads)."""
-    norm2 = (quats * quats).sum(-1, keepdim=True)
-    zero = norm2 < 1e-24
-    identity = torch.zeros_like(quats)
-    identity[:, 0] = 1.0
-    safe = torch.where(zero, identity, quats)
-    return safe * torch.rsqrt(torch.where(zero, torch.ones_like(norm2), norm2))
-
-
-def quats_to_rotmats(quats: torch.Tensor) -> torch.Tensor:
-    """(N, 4) unit wxyz -> (N, 3, 3) rotation matrices."""
-    w, x, y, z = quats.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
+from omnire.geometry import quat_to_rotmat
 
 
 @dataclasses.dataclass
@@ -68,7 +47,7 @@ def project_gaussians(
     in_depth = (z > near) & (z < far)
     z_safe = torch.where(in_depth, z, torch.ones_like(z))
 
-    rot = quats_to_rotmats(normalize_quats(quats))  # (N, 3, 3)
+    rot = quat_to_rotmat(quats)  # (N, 3, 3); zero quaternions are the identity
     M = rot * scales[:, None, :]  # R S
     cov_world = M @ M.transpose(1, 2)
     cov_cam = R @ cov_world @ R.T  # (N, 3, 3)

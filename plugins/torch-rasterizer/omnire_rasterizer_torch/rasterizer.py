@@ -13,12 +13,15 @@ from typing import Optional
 
 import torch
 
+from omnire.camera import Camera
 from omnire.rasterization import (
     ALPHA_THRESHOLD,
     MAX_ALPHA,
     TILE_SIZE,
     TRANSMITTANCE_MIN,
+    RasterSettings,
     RenderOutput,
+    Splats,
     check_raster_inputs,
 )
 from omnire_rasterizer_torch.projection import project_gaussians
@@ -30,24 +33,13 @@ class TorchRasterizer:
     def __init__(self, chunk_elements: int = 2_000_000) -> None:
         self.chunk_elements = chunk_elements
 
-    def rasterize(
-        self,
-        means: torch.Tensor,
-        quats: torch.Tensor,
-        scales: torch.Tensor,
-        opacities: torch.Tensor,
-        colors: torch.Tensor,
-        viewmat: torch.Tensor,
-        K: torch.Tensor,
-        width: int,
-        height: int,
-        background: Optional[torch.Tensor] = None,
-        near: float = 0.01,
-        far: float = 1e10,
-        eps2d: float = 0.3,
-    ) -> RenderOutput:
+    def rasterize(self, splats: Splats, camera: Camera, settings: RasterSettings = RasterSettings()) -> RenderOutput:
         """See :mod:`omnire.rasterization` for the contract (shapes and semantics)."""
-        check_raster_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
+        check_raster_inputs(splats, camera, settings)
+        means, quats, scales, opacities, colors = (splats.means, splats.quats, splats.scales, splats.opacities,
+                                                   splats.colors)
+        viewmat, K, width, height = camera.world_to_cam, camera.K, camera.width, camera.height
+        near, far, eps2d, background = settings.near, settings.far, settings.eps2d, settings.background
         N, D = colors.shape
         dev, dt = means.device, means.dtype
         proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far, eps2d)

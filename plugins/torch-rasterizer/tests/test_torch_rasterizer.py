@@ -2,8 +2,16 @@
 import pytest
 import torch
 
-from omnire.rasterization import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_MIN, RasterInputError
+from omnire.camera import Camera
+from omnire.geometry import quat_to_rotmat
+from omnire.rasterization import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_MIN, RasterInputError, RasterSettings, Splats
 from omnire_rasterizer_torch import TorchRasterizer, project_gaussians
+
+
+def rasterize(rast, means, quats, scales, opacities, colors, viewmat, K, W, H, background=None):
+    """The contract's call from loose tensors."""
+    return rast.rasterize(Splats(means, quats, scales, opacities, colors), Camera.from_world_to_cam(viewmat, K, W, H),
+                          RasterSettings(background=background))
 
 
 def brute_force(means, quats, scales, opacities, colors, viewmat, K, W, H, background):
@@ -59,7 +67,7 @@ def test_forward_and_gradients_match_brute_force(seed):
     means, quats, scales, opac, colors, view, K, bg = random_scene(60, seed)
     inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
     ref = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
-    out = TorchRasterizer(chunk_elements=5000).rasterize(*inputs, view, K, W, H, background=bg)
+    out = rasterize(TorchRasterizer(chunk_elements=5000), *inputs, view, K, W, H, background=bg)
     rgb, depth, alpha = brute_force(*ref, view, K, W, H, bg)
     torch.testing.assert_close(out.rgb, rgb, atol=1e-10, rtol=1e-9)
     torch.testing.assert_close(out.alpha, alpha, atol=1e-10, rtol=1e-9)
@@ -79,13 +87,13 @@ def test_absgrad_is_sum_over_pixels_of_abs_gradient():
     means.requires_grad_(True)
     weights = torch.rand(H, W, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     rast = TorchRasterizer()
-    out = rast.rasterize(means, quats, scales, opac, colors, view, K, W, H, background=bg)
+    out = rasterize(rast, means, quats, scales, opac, colors, view, K, W, H, background=bg)
     (out.rgb * weights).sum().backward()
     # Brute force: one backward per pixel through the means2d tensor.
     expect = torch.zeros(12, 2, dtype=torch.float64)
     for y in range(H):
         for x in range(W):
-            o = rast.rasterize(means, quats, scales, opac, colors, view, K, W, H, background=bg)
+            o = rasterize(rast, means, quats, scales, opac, colors, view, K, W, H, background=bg)
             o.means2d.retain_grad()
             (o.rgb[y, x] * weights[y, x]).sum().backward()
             if o.means2d.grad is not None:
@@ -99,9 +107,7 @@ def test_projection_matches_exact_jacobian():
     K = torch.tensor([[300.0, 0, 160], [0, 310.0, 120], [0, 0, 1]], dtype=torch.float64)
     view = torch.eye(4, dtype=torch.float64)
     proj = project_gaussians(means, quats, scales, view, K, 320, 240, eps2d=0.0)
-    from omnire_rasterizer_torch.projection import normalize_quats, quats_to_rotmats
-
-    R = quats_to_rotmats(normalize_quats(quats))
+    R = quat_to_rotmat(quats)
     for i in range(5):
         f = lambda p: torch.stack([K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2]])
         J = torch.autograd.functional.jacobian(f, means[i])
@@ -122,7 +128,7 @@ def test_degenerate_inputs_stay_finite():
     colors = torch.rand(6, 3)
     for W, H in [(1, 1), (17, 31), (30, 16)]:
         ps = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
-        out = rast.rasterize(*ps, torch.eye(4), K, W, H)
+        out = rasterize(rast, *ps, torch.eye(4), K, W, H)
         (out.rgb.sum() + out.depth.sum()).backward()
         assert out.rgb.shape == (H, W, 3)
         for t in [out.rgb, out.depth, out.alpha, *[p.grad for p in ps]]:
@@ -132,7 +138,7 @@ def test_degenerate_inputs_stay_finite():
 def test_zero_gaussians_render_background():
     rast = TorchRasterizer()
     e = torch.zeros(0, 3)
-    out = rast.rasterize(e, torch.zeros(0, 4), e, torch.zeros(0), e, torch.eye(4), torch.eye(3), 5, 4, background=torch.ones(3))
+    out = rasterize(rast, e, torch.zeros(0, 4), e, torch.zeros(0), e, torch.eye(4), torch.eye(3), 5, 4, background=torch.ones(3))
     assert torch.equal(out.rgb, torch.ones(4, 5, 3)) and torch.equal(out.alpha, torch.zeros(4, 5, 1))
 
 
@@ -140,4 +146,4 @@ def test_non_finite_inputs_raise():
     means, quats, scales, opac, colors, view, K, bg = random_scene(4, 0, torch.float32)
     means[2, 1] = float("nan")
     with pytest.raises(RasterInputError, match="means: 1 non-finite"):
-        TorchRasterizer().rasterize(means, quats, scales, opac, colors, view, K, 8, 8)
+        rasterize(TorchRasterizer(), means, quats, scales, opac, colors, view, K, 8, 8)

@@ -16,7 +16,7 @@ from typing import Optional
 
 import numpy as np
 
-from omnire.body.template import NUM_JOINTS, BodyTemplate
+from omnire_body.template import NUM_JOINTS, BodyTemplate
 
 
 @dataclasses.dataclass
@@ -122,16 +122,3 @@ def lbs(
     if single:
         return LBSOutput(out_v[0], posed_joints[0], skin[0])
     return LBSOutput(out_v, posed_joints, skin)
-
-
-def axis_angle_to_matrix(aa: np.ndarray) -> np.ndarray:
-    """Rodrigues: (..., 3) axis-angle -> (..., 3, 3) rotation matrices."""
-    aa = np.asarray(aa, dtype=np.float64)
-    theta = np.linalg.norm(aa, axis=-1, keepdims=True)  # (..., 1)
-    axis = aa / np.maximum(theta, 1e-12)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    zero = np.zeros_like(x)
-    Kx = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(aa.shape[:-1] + (3, 3))
-    s = np.sin(theta)[..., None]
-    c = np.cos(theta)[..., None]
-    return np.eye(3) + s * Kx + (1.0 - c) * (Kx @ Kx)

@@ -6,17 +6,9 @@ import pickle
 import numpy as np
 import pytest
 
-from omnire.body import (
-    SMPL_PARENTS,
-    BodyTemplateError,
-    axis_angle_to_matrix,
-    forward_kinematics,
-    lbs,
-    load_anny_template,
-    load_smpl_pickle,
-    load_template,
-)
-from omnire.body.template import ANNY_TEMPLATE
+from omnire.geometry import axis_angle_to_rotmat
+from omnire_body import SMPL_PARENTS, BodyTemplateError, forward_kinematics, lbs, load_anny_template, load_smpl_pickle, load_template
+from omnire_body.template import ANNY_TEMPLATE
 from omnire.io.safe_pickle import UnsafePickleError
 
 I3 = np.eye(3)
@@ -56,8 +48,8 @@ def test_rest_pose_returns_template():
 def test_forward_kinematics_chain():
     t = load_template()
     go, bp = rest_pose()
-    R_hip = axis_angle_to_matrix(np.array([-0.6, 0.0, 0.2]))
-    R_knee = axis_angle_to_matrix(np.array([0.9, 0.0, 0.0]))
+    R_hip = axis_angle_to_rotmat(np.array([-0.6, 0.0, 0.2]))
+    R_knee = axis_angle_to_rotmat(np.array([0.9, 0.0, 0.0]))
     bp[0] = R_hip  # left_hip (joint 1)
     bp[3] = R_knee  # left_knee (joint 4)
     joints, A = forward_kinematics(t.joints, t.parents, go, bp)
@@ -74,7 +66,7 @@ def test_forward_kinematics_chain():
 
 def test_global_orient_turns_about_pelvis_and_transl_moves():
     t = load_template()
-    R = axis_angle_to_matrix(np.array([0.0, 1.1, 0.0]))
+    R = axis_angle_to_rotmat(np.array([0.0, 1.1, 0.0]))
     go, bp = rest_pose()
     out = lbs(t, R, bp, transl=np.array([1.0, 2.0, 3.0]))
     expect = (t.vertices - t.joints[0]) @ R.T + t.joints[0] + [1.0, 2.0, 3.0]
@@ -84,7 +76,7 @@ def test_global_orient_turns_about_pelvis_and_transl_moves():
 def test_only_skinned_vertices_move_and_batch_matches_single():
     t = load_template()
     go, bp = rest_pose()
-    bp[4] = axis_angle_to_matrix(np.array([1.0, 0.0, 0.0]))  # right_knee (joint 5)
+    bp[4] = axis_angle_to_rotmat(np.array([1.0, 0.0, 0.0]))  # right_knee (joint 5)
     out = lbs(t, go, bp)
     moved = np.linalg.norm(out.vertices - t.vertices, axis=1) > 1e-6
     leg = t.weights[:, [5, 8, 11]].sum(1) > 1e-6
@@ -123,7 +115,7 @@ def test_smpl_pickle_loads_with_blend_shapes(tmp_path):
     out = lbs(t, go, bp, betas=betas)
     shaped = d["v_template"] + d["shapedirs"] @ betas
     np.testing.assert_allclose(out.vertices, shaped, atol=1e-9)  # rest pose: no pose blend
-    bp[0] = axis_angle_to_matrix(np.array([0.3, 0.0, 0.0]))
+    bp[0] = axis_angle_to_rotmat(np.array([0.3, 0.0, 0.0]))
     with_blend = lbs(t, go, bp).vertices
     without = lbs(t, go, bp, pose_blend=False).vertices
     assert np.abs(with_blend - without).max() > 1e-4

@@ -2,8 +2,8 @@
 world-frame orientation, estimator plumbing."""
 import numpy as np
 
-from omnire.body import axis_angle_to_matrix
-from omnire.humanpose import (
+from omnire.geometry import axis_angle_to_rotmat
+from omnire_body.humanpose import (
     HumanTracklet,
     complete_rotations,
     match_tracklets,
@@ -16,7 +16,7 @@ from scene_helpers import make_tiny_scene
 
 
 def rot_z(a):
-    return axis_angle_to_matrix(np.array([0.0, 0.0, a]))
+    return axis_angle_to_rotmat(np.array([0.0, 0.0, a]))
 
 
 def scene_with_people(tmp_path, ys=(-1.6, 0.0, 1.6)):
@@ -90,8 +90,8 @@ def test_world_orientation_and_completion_from_tracklets(tmp_path):
     scene = scene_with_people(tmp_path, ys=(0.5,))
     track = scene.tracks[-1]
     rng = np.random.default_rng(1)
-    go_world = np.stack([rot_z(0.1 * f) @ axis_angle_to_matrix(np.array([0.0, 0.3, 0.0])) for f in range(8)])
-    bp = axis_angle_to_matrix(rng.normal(0, 0.3, (8, 23, 3)))
+    go_world = np.stack([rot_z(0.1 * f) @ axis_angle_to_rotmat(np.array([0.0, 0.3, 0.0])) for f in range(8)])
+    bp = axis_angle_to_rotmat(rng.normal(0, 0.3, (8, 23, 3)))
     t_a = tracklet_for(scene, track, 0, np.array([0, 1, 2, 6, 7]), rng, go_world, bp)
     t_b = tracklet_for(scene, track, 1, np.array([2, 3]), rng, go_world, bp)
     seqs = sequences_from_tracklets(scene, [t_a, t_b], {0: track.track_id, 1: track.track_id})

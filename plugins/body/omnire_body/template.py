@@ -19,6 +19,7 @@ from typing import Optional
 import numpy as np
 
 from omnire.io import safe_pickle
+from omnire.api import MissingFileError, UserError
 
 ASSET_DIR = Path(__file__).resolve().parent / "assets"
 ANNY_TEMPLATE = ASSET_DIR / "anny_cmu_mb_rest_neutral.npz"
@@ -38,7 +39,7 @@ SMPL_PARENTS = np.array(
 ANNY_TO_SMPL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
-class BodyTemplateError(ValueError):
+class BodyTemplateError(UserError):
     """A body template file is missing fields or has inconsistent shapes (message names the file)."""
 
 
@@ -105,7 +106,7 @@ def load_anny_template(path: str | Path = ANNY_TEMPLATE) -> BodyTemplate:
     """Load the open Anny-derived template (npz, no pickles) converted to SMPL's frame."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: body template not found")
+        raise MissingFileError(f"{path}: body template not found")
     with np.load(path, allow_pickle=False) as d:
         missing = [k for k in ("vertices", "faces", "joints24", "joint24_parents", "weights24") if k not in d.files]
         if missing:

@@ -22,17 +22,21 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-from omnire.io.atomic import atomic_write_text
+from omnire.api import atomic_write_text, visible_in_cameras
 
 
 @dataclasses.dataclass
 class SkipBenchArgs:
     """Measure the cost of what a scene does not need."""
 
+    dataparser: str = "pandaset"
+    """Dataparser reading --data."""
     data: Path = Path("data/demo/pandaset_002")
-    """PandaSet-layout scene."""
+    """Scene directory."""
     scale: float = 0.5
     """Image scale."""
+    baseline: str = "streetgs"
+    """Method without human nodes to compare omnire with on the scene without humans."""
     steps: int = 30
     """Timed steps per configuration."""
     warmup: int = 5
@@ -43,43 +47,41 @@ class SkipBenchArgs:
     """JSON output."""
 
 
-def _trainer(plugins, method: str, scene, seed: int = 0):
-    from omnire.trainer import TrainConfig, Trainer, TrainerConfig
+def _trainer(plugins, method: str, dataparser: str, scene, seed: int = 0):
+    from omnire.api import TrainConfig, Trainer, TrainerConfig
 
     cfg = plugins.methods.get(method).config_factory()
     cfg.densify.refine_start = 10**9  # fixed Gaussian count: time the same work
-    tc = TrainerConfig(max_steps=10**6, progress=False, seed=seed, output_dir=Path("/tmp/omnire-bench-skip"))
-    return Trainer(TrainConfig(method, "pandaset", cfg, None, tc), plugins, argv=[], scene=scene)
+    tc = TrainerConfig(max_steps=10**6, progress=False, seed=seed)
+    return Trainer(TrainConfig(method, dataparser, cfg, None, tc), plugins, scene=scene, persist=False)
 
 
 def _time_steps(trainers: list, views: list[list], warmup: int, steps: int) -> list[float]:
     """Median ms per training step of each trainer on its views. Steps alternate between
     the trainers, so a slow spell of a shared machine hits every configuration alike."""
+    rng = np.random.default_rng(0)
     for trainer, vs in zip(trainers, views):
-        trainer.train_views = vs
-        for v in vs:  # decode every image and build every mask first: time rendering and optimisation only
-            trainer.target(v)
-            trainer.lidar.get(v)
-            trainer.dynamic_masks.get(v, "all")
-            if trainer.sky_masks is not None:
-                trainer.sky_masks.get(v)
+        # decode every image and build every mask first: time rendering and optimisation only
+        trainer.observations.preload(vs, sky=trainer.use_sky_masks)
         for _ in range(warmup):
-            trainer.train_step()
+            trainer.train_step(vs[int(rng.integers(len(vs)))])
     times: list[list[float]] = [[] for _ in trainers]
     for _ in range(steps):
-        for trainer, ts in zip(trainers, times):
+        for trainer, vs, ts in zip(trainers, views, times):
+            view = vs[int(rng.integers(len(vs)))]
             t0 = time.perf_counter()
-            trainer.train_step()
+            trainer.train_step(view)
             ts.append(time.perf_counter() - t0)
     return [statistics.median(ts) * 1000 for ts in times]
 
 
 def main(argv: list[str], plugins) -> int:
+    """``omnire bench skip``."""
     from rich.console import Console
     from rich.table import Table
 
     args = tyro.cli(SkipBenchArgs, args=argv, prog="omnire bench skip")
-    cfg = plugins.dataparsers.get("pandaset").config_factory()
+    cfg = plugins.dataparsers.get(args.dataparser).config_factory()
     cfg.data, cfg.scale = args.data, args.scale
     scene = cfg.setup().parse().validate()
     out: dict = {"args": {k: str(v) for k, v in dataclasses.asdict(args).items()}}
@@ -87,18 +89,16 @@ def main(argv: list[str], plugins) -> int:
     no_humans = copy.copy(scene)
     no_humans.tracks = [t for t in scene.tracks if t.category not in ("human", "cyclist")]
     no_humans.human_poses = {}
-    trainers = [_trainer(plugins, method, no_humans) for method in ("streetgs", "omnire")]
+    trainers = [_trainer(plugins, method, args.dataparser, no_humans) for method in (args.baseline, "omnire")]
     times = _time_steps(trainers, [tr.train_views for tr in trainers], args.warmup, args.steps)
-    rows = [{"method": tr.config.method_name, "nodes": list(tr.model.nodes), "ms_per_step": ms,
-             "gaussians": tr.model.num_gaussians()} for tr, ms in zip(trainers, times)]
+    rows = [{"method": tr.config.method_name, "nodes": list(tr.recon.model.nodes), "ms_per_step": ms,
+             "gaussians": tr.recon.num_gaussians()} for tr, ms in zip(trainers, times)]
     del trainers
     out["no_humans"] = rows
     out["no_humans_overhead"] = rows[1]["ms_per_step"] / rows[0]["ms_per_step"] - 1
 
     # Absent actors: copies of a real vehicle, present only in the first two frames; steps are
     # timed on frames from the second half, where none of them is present.
-    from omnire.nodes.actors import visible_in_cameras
-
     early = np.array([0, 1])
     base = next(t for t in scene.tracks if t.category == "vehicle" and t.present[:2].all()
                 and visible_in_cameras(t, scene, early))
@@ -113,25 +113,25 @@ def main(argv: list[str], plugins) -> int:
             t.present = np.zeros_like(t.present)
             t.present[:2] = True
             s.tracks.append(t)
-        trainers.append(_trainer(plugins, "streetgs", s))
+        trainers.append(_trainer(plugins, args.baseline, args.dataparser, s))
         views.append([v for v in trainers[-1].train_views if v.frame in late])
     times = _time_steps(trainers, views, args.warmup, args.steps)
-    absent_rows = [{"extra_actors": k, "rigid_instances": len(tr.model.assignment.get("rigid", [])),
-                    "ms_per_step": ms, "gaussians": tr.model.num_gaussians()}
+    absent_rows = [{"extra_actors": k, "rigid_instances": len(tr.recon.assignment.get("rigid", [])),
+                    "ms_per_step": ms, "gaussians": tr.recon.num_gaussians()}
                    for k, tr, ms in zip(args.extra_actors, trainers, times)]
     out["absent_actors"] = absent_rows
     args.output.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.output, json.dumps(out, indent=2))
 
     console = Console()
-    t1 = Table(title="scene without humans: omnire vs streetgs")
+    t1 = Table(title=f"scene without humans: omnire vs {args.baseline}")
     for c in ("method", "nodes", "Gaussians", "ms / step"):
         t1.add_column(c)
     for r in rows:
         t1.add_row(r["method"], ", ".join(r["nodes"]), str(r["gaussians"]), f"{r['ms_per_step']:.1f}")
     console.print(t1)
     console.print(f"omnire overhead: {100 * out['no_humans_overhead']:+.1f}%")
-    t2 = Table(title="actors absent from the rendered frames (streetgs, frames of the second half)")
+    t2 = Table(title=f"actors absent from the rendered frames ({args.baseline}, frames of the second half)")
     for c in ("extra actors", "rigid instances", "Gaussians", "ms / step"):
         t2.add_column(c)
     for r in absent_rows:

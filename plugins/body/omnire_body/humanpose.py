@@ -32,7 +32,7 @@ from typing import Any, Optional, Protocol
 
 import numpy as np
 
-from omnire.data.scene import ActorTrack, HumanPoseSequence, SceneData
+from omnire.api import ActorTrack, HumanPoseSequence, SceneData, slerp_rotmats
 
 # SMPL canonical body axes -> box axes (x heading, z up): body front (+z) -> +x,
 # body left (+x) -> +y, body up (+y) -> +z.
@@ -77,41 +77,6 @@ class PoseEstimator(Protocol):
 
 
 # ---------------------------------------------------------------------------------- rotations
-def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) -> (..., 4) wxyz unit quaternions with w >= 0."""
-    from scipy.spatial.transform import Rotation
-
-    shape = R.shape[:-2]
-    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()  # xyzw
-    q = np.concatenate([q[:, 3:], q[:, :3]], axis=1)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    return q.reshape(*shape, 4)
-
-
-def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) wxyz -> (..., 3, 3)."""
-    from scipy.spatial.transform import Rotation
-
-    shape = q.shape[:-1]
-    q = q.reshape(-1, 4)
-    return Rotation.from_quat(np.concatenate([q[:, 1:], q[:, :1]], axis=1)).as_matrix().reshape(*shape, 3, 3)
-
-
-def slerp(q0: np.ndarray, q1: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Spherical interpolation of (..., 4) unit quaternions; ``w`` broadcasts to (...)."""
-    w = np.asarray(w, dtype=np.float64)[..., None]
-    dot = (q0 * q1).sum(-1, keepdims=True)
-    q1 = np.where(dot < 0, -q1, q1)  # shortest arc
-    dot = np.abs(dot).clip(max=1.0)
-    theta = np.arccos(dot)
-    s = np.sin(theta)
-    near = s < 1e-6
-    a = np.where(near, 1 - w, np.sin((1 - w) * theta) / np.where(near, 1, s))
-    b = np.where(near, w, np.sin(w * theta) / np.where(near, 1, s))
-    q = a * q0 + b * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
 def complete_rotations(rots: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Fill frames without an estimate.
 
@@ -140,9 +105,8 @@ def complete_rotations(rots: np.ndarray, valid: np.ndarray) -> np.ndarray:
     before, after = nxt == 0, nxt == len(obs)
     w = np.where(n == p, 0.0, (missing - p) / np.maximum(n - p, 1))
     w = np.where(before, 1.0, np.where(after, 0.0, w))  # hold the nearest outside the range
-    q0, q1 = rotmat_to_quat(rots[p]), rotmat_to_quat(rots[n])
-    w_b = w.reshape((-1,) + (1,) * (q0.ndim - 2))
-    out[missing] = quat_to_rotmat(slerp(q0, q1, np.broadcast_to(w_b, q0.shape[:-1])))
+    w_b = w.reshape((-1,) + (1,) * (rots.ndim - 3))
+    out[missing] = slerp_rotmats(rots[p], rots[n], np.ascontiguousarray(np.broadcast_to(w_b, rots[p].shape[:-2])))
     assert out.shape[0] == F
     return out
 
@@ -265,7 +229,7 @@ def sequences_from_tracklets(scene: SceneData, tracklets: list[HumanTracklet], a
 
 
 # ---------------------------------------------------------------------------------- neutral pose
-def _align(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def align_directions(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Smallest rotation (3, 3) taking direction ``a`` to direction ``b``."""
     a = a / np.linalg.norm(a)
     b = b / np.linalg.norm(b)
@@ -285,7 +249,7 @@ def neutral_body_pose(joints: np.ndarray, arm_abduction_deg: float = 8.0) -> np.
     bp = np.tile(np.eye(3), (23, 1, 1))
     a = np.deg2rad(arm_abduction_deg)
     for shoulder, elbow, side in ((16, 18, 1.0), (17, 19, -1.0)):  # x = body's left
-        bp[shoulder - 1] = _align(joints[elbow] - joints[shoulder], np.array([side * np.sin(a), -np.cos(a), 0.0]))
+        bp[shoulder - 1] = align_directions(joints[elbow] - joints[shoulder], np.array([side * np.sin(a), -np.cos(a), 0.0]))
     return bp
 
 
@@ -352,7 +316,7 @@ def prepare_human_poses(scene: SceneData, estimator: Optional[PoseEstimator] = N
     for t in todo:
         if fallback == "neutral":
             if joints is None:
-                from omnire.body.template import load_template
+                from omnire_body.template import load_template
 
                 joints = load_template().joints
             scene.human_poses[t.track_id] = neutral_sequence(t, joints)

@@ -1,6 +1,6 @@
 """Body templates with the SMPL skeleton and numpy linear blend skinning."""
-from omnire.body.lbs import LBSOutput, axis_angle_to_matrix, forward_kinematics, lbs
-from omnire.body.template import (
+from omnire_body.lbs import LBSOutput, forward_kinematics, lbs
+from omnire_body.template import (
     SMPL_JOINT_NAMES,
     SMPL_PARENTS,
     BodyTemplate,
@@ -12,6 +12,6 @@ from omnire.body.template import (
 
 __all__ = [
     "BodyTemplate", "BodyTemplateError", "LBSOutput", "SMPL_JOINT_NAMES", "SMPL_PARENTS",
-    "axis_angle_to_matrix", "forward_kinematics", "lbs", "load_anny_template",
+    "forward_kinematics", "lbs", "load_anny_template",
     "load_smpl_pickle", "load_template",
 ]
