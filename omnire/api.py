@@ -40,6 +40,7 @@ from omnire.method import MethodConfig
 from omnire.nn import DeformationMLP, positional_encoding
 from omnire.nodes.actors import (
     ActorNode,
+    ActorState,
     ActorPoses,
     BoxActorConfig,
     BoxActorNode,
@@ -74,20 +75,21 @@ from omnire.registry import (
     RasterizerSpec,
     Registry,
     SceneWriterSpec,
+    TrainObserverSpec,
 )
 from omnire.runconfig import TrainConfig, TrainerConfig
 from omnire.runtime import Reconstruction
 from omnire.trainer import Trainer
 
 __all__ = [
-    "CATEGORIES", "GAUSSIAN_KEYS", "MissingFileError", "ActorNode", "ActorPoses", "ActorTrack", "BackgroundConfig", "BoxActorConfig",
+    "CATEGORIES", "GAUSSIAN_KEYS", "MissingFileError", "ActorNode", "ActorState", "ActorPoses", "ActorTrack", "BackgroundConfig", "BoxActorConfig",
     "BoxActorNode", "Camera", "CameraSequence", "CommandSpec", "ConfigError", "Dataparser", "DataparserConfig",
     "DataparserSpec", "DeformationMLP", "EnvironmentNode", "GaussianNode", "GaussianNodeConfig", "Gaussians",
     "HumanPoseSequence", "ImageCache", "ImageReadError", "InstantiateConfig", "LidarSweeps", "LogDataparserConfig",
     "LossContext", "LossSpec", "MethodConfig", "MethodSpec", "Node", "NodeConfig", "NodeContext", "NodeOutput",
     "NodeTypeSpec", "ParamGroup", "PoseEstimatorSpec", "RasterInputError", "RasterSettings", "RasterizerSpec",
     "Reconstruction", "Registry", "RenderOutput", "SceneData", "SceneDataError", "SceneTime", "SceneWriterSpec",
-    "Splats", "TrainConfig", "Trainer", "TrainerConfig", "UserError", "View", "atomic_write_bytes",
+    "Splats", "TrainConfig", "TrainObserverSpec", "Trainer", "TrainerConfig", "UserError", "View", "atomic_write_bytes",
     "atomic_write_text", "axis_angle_to_rotmat", "bracket", "check_raster_inputs", "colour_from_images",
     "far_shell", "first_pose_world", "frame_blend", "frame_range", "holdout_split", "hookimpl", "in_frustum",
     "init_background_params", "init_gaussian_params", "interpolate_poses", "interpolate_track", "invert_se3",

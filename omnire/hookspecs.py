@@ -28,6 +28,7 @@ from omnire.registry import (
     RasterizerSpec,
     Registry,
     SceneWriterSpec,
+    TrainObserverSpec,
 )
 
 PROJECT = "omnire"
@@ -73,3 +74,8 @@ def omnire_register_pose_estimators(registry: Registry[PoseEstimatorSpec]) -> No
 @hookspec
 def omnire_register_scene_writers(registry: Registry[SceneWriterSpec]) -> None:
     """Register writers of a dataset's on-disk layout (``omnire synth --format``)."""
+
+
+@hookspec
+def omnire_register_train_observers(registry: Registry[TrainObserverSpec]) -> None:
+    """Register training observers (``--trainer.observers``), e.g. a live viewer."""

@@ -200,6 +200,19 @@ class SceneWriterSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class TrainObserverSpec:
+    """Something that watches training (``--trainer.observers <name>``), e.g. a live viewer.
+
+    ``factory(trainer)`` builds an object with ``on_step(step: int, stats: dict) -> None``,
+    called after every ``--trainer.observe-every`` steps and at the end, and ``close()``.
+    It may read ``trainer.recon`` (the scene runtime) and must not change it."""
+
+    name: str
+    description: str
+    factory: Callable[[Any], Any]
+
+
+@dataclasses.dataclass(frozen=True)
 class RegistryKind:
     """One kind of registry: the attribute of :class:`omnire.plugins.Plugins` holding it,
     what an entry is called in messages, the spec class and the hook that fills it."""
@@ -219,5 +232,6 @@ REGISTRY_KINDS: tuple[RegistryKind, ...] = (
     RegistryKind("commands", "command", CommandSpec, "omnire_register_commands"),
     RegistryKind("pose_estimators", "pose estimator", PoseEstimatorSpec, "omnire_register_pose_estimators"),
     RegistryKind("scene_writers", "scene writer", SceneWriterSpec, "omnire_register_scene_writers"),
+    RegistryKind("train_observers", "training observer", TrainObserverSpec, "omnire_register_train_observers"),
 )
 """Every registry kind, in the order ``omnire plugins`` lists them."""

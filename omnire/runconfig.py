@@ -50,6 +50,11 @@ class TrainerConfig:
     """Training views evaluated for the reconstruction metrics (evenly spaced; 0 = all)."""
     progress: bool = True
     """Show the rich progress bar."""
+    observers: tuple[str, ...] = ()
+    """Training observers to run, registered by plugins (``omnire plugins`` lists them; e.g.
+    viewer: the scene live in the browser)."""
+    observe_every: int = 100
+    """Steps between observer updates."""
 
     def __post_init__(self) -> None:
         validate_trainer_config(self)
@@ -59,7 +64,8 @@ def validate_trainer_config(tc: TrainerConfig) -> None:
     """Reject values that cannot work, naming the flag (before any work is done)."""
     import torch
 
-    positive = {"max_steps": tc.max_steps, "log_every": tc.log_every, "checkpoint_every": tc.checkpoint_every}
+    positive = {"max_steps": tc.max_steps, "log_every": tc.log_every, "checkpoint_every": tc.checkpoint_every,
+                "observe_every": tc.observe_every}
     for name, value in positive.items():
         if value <= 0:
             raise ConfigError(f"--trainer.{name.replace('_', '-')} {value}: must be a positive number of steps")

@@ -80,6 +80,8 @@ class Trainer:
         torch.manual_seed(tc.seed)
         self.argv = list(argv) if argv is not None else None
         self.persist = persist
+        for name in tc.observers:
+            plugins.train_observers.get(name)  # an unknown observer fails before any work
         resume_state = None
         self.run: Optional[RunDirectory] = None
         if persist:
@@ -108,6 +110,7 @@ class Trainer:
         self.train_views = self.scene.views(self.scene.train_frames)
         self.test_views = self.scene.views(self.scene.test_frames)
         self.step = 0
+        self.observers: list = []
         self._stop_signal: Optional[int] = None
         if resume_state is not None:
             self.load_state(resume_state)
@@ -244,12 +247,15 @@ class Trainer:
         omnire_log.addHandler(file_log)
         for record in self._early_records:
             file_log.handle(record)
+        self.observers = [self.plugins.train_observers.get(name).factory(self) for name in tc.observers]
         previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
             return self._train_loop(tc)
         finally:
             for s, handler in previous.items():
                 signal.signal(s, handler)
+            for observer in self.observers:
+                observer.close()
             omnire_log.removeHandler(file_log)
             file_log.close()
 
@@ -297,6 +303,9 @@ class Trainer:
                     window_seconds, window_n, window_psnr = 0.0, 0, []
                     progress.update(task, completed=self.step, loss=stats["loss"], psnr=stats["psnr"], its=its,
                                     ng=record["num_gaussians"])
+                if self.observers and (self.step % tc.observe_every == 0 or self.step == tc.max_steps):
+                    for observer in self.observers:
+                        observer.on_step(self.step, stats)
                 if tc.eval_every and self.step % tc.eval_every == 0 and self.step < tc.max_steps:
                     evaluation = self.evaluate()
                     metrics.write(json.dumps({"step": self.step, "wall": train_seconds, "eval": evaluation}) + "\n")

@@ -24,7 +24,8 @@ from omnire.data.scene import ActorTrack, SceneData, SceneTime
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 from omnire.geometry import axis_angle_to_rotmat, quat_multiply, rotmat_to_quat, slerp_rotmats
 from omnire.interpolation import bracket
-from omnire.nodes.base import GaussianNode, GaussianNodeConfig, NodeContext, ParamGroup
+from omnire.camera import Camera
+from omnire.nodes.base import GaussianNode, GaussianNodeConfig, NodeContext, NodeOutput, ParamGroup
 from omnire.pointcloud import points_in_box
 from omnire.rowsparse import gather_rows
 
@@ -175,12 +176,34 @@ def segment_rows(offsets: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
     return starts[seg] + torch.arange(total, device=offsets.device) - first_out[seg]
 
 
+@dataclasses.dataclass
+class ActorState:
+    """Where a node's actors are at one moment: what :meth:`ActorNode.state_at` reads from
+    the recorded (and refined) tracks, and what editing tools replace.
+
+    Attributes:
+        ids: (P,) increasing instance indices of the actors to draw.
+        R: (P, 3, 3) box-to-world rotations; t: (P, 3) box centres in the world.
+        body: (P, 24, 3, 3) body-joint rotations (SMPL order, root = orientation relative to
+            the box) for nodes with a body model; None for the others (or "as recorded").
+    """
+
+    ids: torch.Tensor
+    R: torch.Tensor
+    t: torch.Tensor
+    body: Optional[torch.Tensor] = None
+
+
 class ActorNode(GaussianNode):
     """Base of box-based actor nodes: one node object holds every instance of its type.
 
     Sets ``self.track_ids`` and ``self.poses`` (:class:`ActorPoses`, refined when
     ``refine_boxes``); subclasses set the per-Gaussian buffer ``instance`` (N,),
     non-decreasing (Gaussians of one instance are contiguous rows).
+
+    Drawing is split in two: :meth:`state_at` says which actors are where at a moment (from
+    the tracks), :meth:`gaussians_for` draws given actors in a given state. Simulation and
+    viewers edit the state between the two.
     """
 
     poses: ActorPoses
@@ -208,6 +231,24 @@ class ActorNode(GaussianNode):
     def row_order(self) -> Optional[torch.Tensor]:
         instance = self.gaussian_buffers["instance"]
         return None if rows_grouped(instance) else torch.sort(instance, stable=True).indices
+
+    def state_at(self, t: SceneTime) -> ActorState:
+        """The actors present at ``t`` and their recorded (refined) poses."""
+        ids, R, tr = self.poses.at(t)
+        return ActorState(ids, R, tr)
+
+    def gaussians_for(self, state: ActorState, t: SceneTime, camera: Optional[Camera] = None,
+                      step: Optional[int] = None) -> Optional[NodeOutput]:
+        """World-space Gaussians of the actors ``state.ids`` placed as ``state`` says, at
+        moment ``t`` (for time-dependent appearance); None when ``state`` holds no actor."""
+        raise NotImplementedError
+
+    def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
+                     step: Optional[int] = None) -> Optional[NodeOutput]:
+        state = self.state_at(t)
+        if len(state.ids) == 0:
+            return None  # absent actors cost nothing
+        return self.gaussians_for(state, t, camera, step)
 
 
 @dataclasses.dataclass

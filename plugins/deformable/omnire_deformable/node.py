@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from omnire.api import (
+    ActorState,
     BoxActorConfig,
     BoxActorNode,
     Camera,
@@ -91,11 +92,9 @@ class DeformableNode(BoxActorNode):
                            self.embeddings[instance]], dim=-1)
         return self.mlp(feats)
 
-    def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
-                     step: Optional[int] = None) -> Optional[NodeOutput]:
-        ids, R, tr = self.poses.at(t)
-        if len(ids) == 0:
-            return None
+    def gaussians_for(self, state: ActorState, t: SceneTime, camera: Optional[Camera] = None,
+                      step: Optional[int] = None) -> Optional[NodeOutput]:
+        ids, R, tr = state.ids, state.R, state.t
         g, rows = self.present_gaussians(ids)
         instance = self.gaussian_buffers["instance"][rows]
         extras = {}

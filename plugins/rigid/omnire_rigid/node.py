@@ -13,7 +13,7 @@ from typing import Optional
 
 import torch
 
-from omnire.api import BoxActorConfig, BoxActorNode, Camera, NodeOutput, SceneTime, transform_instances
+from omnire.api import ActorState, BoxActorConfig, BoxActorNode, Camera, NodeOutput, SceneTime, transform_instances
 
 
 @dataclasses.dataclass
@@ -28,13 +28,11 @@ class RigidConfig(BoxActorConfig):
 class RigidNode(BoxActorNode):
     config: RigidConfig
 
-    def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
-                     step: Optional[int] = None) -> Optional[NodeOutput]:
-        ids, R, tr = self.poses.at(t)
-        if len(ids) == 0:
-            return None  # absent actors cost nothing
-        g, rows = self.present_gaussians(ids)
-        return NodeOutput(transform_instances(g, self.gaussian_buffers["instance"][rows], ids, R, tr), rows, t)
+    def gaussians_for(self, state: ActorState, t: SceneTime, camera: Optional[Camera] = None,
+                      step: Optional[int] = None) -> Optional[NodeOutput]:
+        g, rows = self.present_gaussians(state.ids)
+        return NodeOutput(transform_instances(g, self.gaussian_buffers["instance"][rows], state.ids, state.R, state.t),
+                          rows, t)
 
     @torch.no_grad()
     def extra_prune_mask(self) -> torch.Tensor:

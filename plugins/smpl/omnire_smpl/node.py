@@ -44,6 +44,7 @@ from torch import nn
 
 from omnire.api import (
     ActorNode,
+    ActorState,
     Camera,
     GaussianNodeConfig,
     HumanPoseSequence,
@@ -270,14 +271,19 @@ class SMPLNode(ActorNode):
         return slerp_rotmats(R0, self.pose_rotations(ids, f1), torch.full(R0.shape[:2], w, dtype=R0.dtype))
 
     # ------------------------------------------------------------------ Node API
-    def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
-                     step: Optional[int] = None) -> Optional[NodeOutput]:
-        ids, R_box, t_box = self.poses.at(t)
-        if len(ids) == 0:
-            return None  # absent people cost nothing
+    def state_at(self, t: SceneTime) -> ActorState:
+        """People present at ``t``: box poses and (refined, interpolated) body rotations."""
+        ids, R, tr = self.poses.at(t)
+        return ActorState(ids, R, tr, self.rotations_at(ids, t) if len(ids) else None)
+
+    def gaussians_for(self, state: ActorState, t: SceneTime, camera: Optional[Camera] = None,
+                      step: Optional[int] = None) -> Optional[NodeOutput]:
+        """People ``state.ids`` at their box poses, skinned with ``state.body`` (P, 24, 3, 3)
+        (recorded rotations when None)."""
+        ids, R_box, t_box = state.ids, state.R, state.t
         instance = self.gaussian_buffers["instance"]
         g, rows = self.present_gaussians(ids)
-        rots = self.rotations_at(ids, t)  # (P, 24, 3, 3)
+        rots = self.rotations_at(ids, t) if state.body is None else state.body  # (P, 24, 3, 3)
         eye = torch.eye(3, device=rots.device).expand(len(ids), 1, 3, 3)
         _, A = forward_kinematics(self.joints[ids], self.parents, torch.cat([eye, rots[:, 1:]], 1))
         lookup = torch.full((self.poses.num_instances,), -1, dtype=torch.long, device=ids.device)
