@@ -3,8 +3,9 @@ resources, follow their progress and stop them cleanly.
 
 Each job is one Ray task reserving its CPUs, GPUs and memory; inside it
 ``omnire_batch.runner.execute_job`` runs ``omnire train`` as a subprocess. A small actor (no
-CPU) carries progress from the tasks to the driver and the driver's stop request back, so
-nothing here needs storage shared with the driver. Nothing here imports torch or the omnire
+CPU) carries progress from the tasks to the driver; stopping is ``ray.cancel``, which raises
+KeyboardInterrupt in a running task (the job then has its trainer checkpoint and exit).
+Nothing here needs storage shared with the driver. Nothing here imports torch or the omnire
 core either: workers unpickle these functions and start fast.
 """
 from __future__ import annotations
@@ -25,21 +26,16 @@ GIB = 1024 ** 3
 
 @ray.remote(num_cpus=0)
 class ProgressBoard:
-    """Latest progress of each job, and whether the batch wants its jobs to stop."""
+    """Latest progress of each job (the tasks write, the driver reads)."""
 
     def __init__(self) -> None:
         self.state: dict[str, dict] = {}
-        self.stop = False
 
-    def report(self, key: str, info: dict) -> bool:
+    def report(self, key: str, info: dict) -> None:
         self.state[key] = dict(info, time=time.time())
-        return self.stop
 
     def snapshot(self) -> dict:
         return self.state
-
-    def request_stop(self) -> None:
-        self.stop = True
 
 
 @ray.remote
@@ -53,7 +49,10 @@ def _prepare_task(scene: Scene, log_dir) -> Optional[str]:
 @ray.remote
 def _job_task(job: Job, scene_error: Optional[str], redo_changed: bool, board) -> dict:
     def report(key: str, info: dict) -> bool:
-        return ray.get(board.report.remote(key, info), timeout=30)
+        # Fire and forget: a task blocked in ray.get lends its CPUs to other tasks, which
+        # would start more trainers than there are cores. Stopping goes through ray.cancel.
+        board.report.remote(key, info)
+        return False
 
     return execute_job(job, report, scene_error, redo_changed)
 
@@ -94,7 +93,7 @@ class BatchRun:
 
     ``on_result(result)`` is called in the driver as each job ends; ``on_progress(snapshot,
     pending keys)`` about once a second. SIGINT/SIGTERM ask every job to checkpoint and stop
-    (it then reports "interrupted"); a second signal cancels the tasks at once.
+    (it then reports "interrupted"); a second signal kills the workers.
     """
 
     def __init__(self, jobs: list[Job], redo_changed: bool = False) -> None:
@@ -123,25 +122,20 @@ class BatchRun:
             ref = _job_task.options(**opts).remote(job, ready.get(job.scene.name), self.redo_changed, board)
             pending[ref] = job
         old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-        stop_sent = False
+        handled = 0
         try:
             while pending:
                 done, _ = ray.wait(list(pending), num_returns=len(pending), timeout=1.0)
                 for ref in done:
                     job = pending.pop(ref)
-                    on_result(self._get(ref, job))
-                if self.signals and not stop_sent:
-                    board.request_stop.remote()
-                    stop_sent = True
-                    on_stop(1)
-                if self.signals > 1:
-                    on_stop(2)
-                    for ref, job in list(pending.items()):
-                        ray.cancel(ref, force=True)
-                        on_result(dict(base_result(job), status="interrupted", exit_code=None, ran=True,
-                                       error="cancelled by a second signal; a rerun resumes it from its newest checkpoint"))
-                    pending.clear()
-                    break
+                    on_result(self._get(ref, job, stopping=self.signals > 0))
+                if self.signals > handled:
+                    handled = self.signals
+                    on_stop(min(handled, 2))
+                    # 1st signal: KeyboardInterrupt in running tasks (their trainers checkpoint and
+                    # exit; queued tasks are dropped); 2nd: kill the workers (trainers get SIGTERM).
+                    for ref in pending:
+                        ray.cancel(ref, force=handled > 1)
                 try:
                     snap = ray.get(board.snapshot.remote(), timeout=10)
                 except Exception:
@@ -153,13 +147,18 @@ class BatchRun:
         return not self.signals
 
     @staticmethod
-    def _get(ref, job: Job) -> dict:
+    def _get(ref, job: Job, stopping: bool) -> dict:
+        resume = "; a rerun resumes it from its newest checkpoint"
         try:
             return ray.get(ref)
-        except (ray.exceptions.TaskCancelledError, ray.exceptions.WorkerCrashedError,
-                ray.exceptions.NodeDiedError) as exc:
+        except ray.exceptions.TaskCancelledError:
             return dict(base_result(job), status="interrupted", exit_code=None, ran=True,
-                        error=f"{type(exc).__name__}: {str(exc)[-1500:]}; a rerun resumes it from its newest checkpoint")
+                        error="stopped by the batch" + resume)
+        except (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError) as exc:
+            # a crash while stopping is the stop; otherwise Ray's retries (each resuming) ran out
+            status = "interrupted" if stopping else "failed"
+            return dict(base_result(job), status=status, exit_code=None, ran=True,
+                        error=f"{type(exc).__name__}: {str(exc)[-1500:]}" + (resume if status == "interrupted" else ""))
         except ray.exceptions.RayError as exc:
             return dict(base_result(job), status="failed", exit_code=None, ran=True,
                         error=f"{type(exc).__name__}: {str(exc)[-3000:]}")

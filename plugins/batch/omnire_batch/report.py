@@ -163,8 +163,9 @@ def markdown(results: list[dict], meta: dict, plots: dict[str, str]) -> str:
 
 def plot_mean(results: list[dict], path: Path) -> None:
     """Novel-view PSNR against training time per method, mean over its successful jobs (scenes
-    and seeds) at each evaluated step they all reached, ± one standard deviation shaded; the
-    mean copy-nearest-frame baseline dashed. Panels: full image, human and vehicle regions."""
+    and seeds; for a region, those whose scene has it) at each evaluated step they all
+    reached, ± one standard deviation shaded; the mean copy-nearest-frame baseline dashed.
+    Panels: full image, human and vehicle regions."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -172,10 +173,15 @@ def plot_mean(results: list[dict], path: Path) -> None:
 
     ok = [r for r in results if r.get("status") == "ok" and r.get("curve")]
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.4), dpi=110)
+    colours = {label: f"C{i % 10}" for i, label in enumerate(_order(r["method"] for r in ok))}
     for ax, region in zip(axes, ("full", "human", "vehicle")):
         key = f"novel_view.{region}_psnr"
-        for label in _order(r["method"] for r in ok):
-            curves = [{c["step"]: c for c in r["curve"]} for r in ok if r["method"] == label]
+        for label in colours:
+            # jobs whose scene has this region (a highway has no humans)
+            curves = [{c["step"]: c for c in r["curve"]} for r in ok
+                      if r["method"] == label and _num(r["final"].get(key)) is not None]
+            if not curves:
+                continue
             steps = sorted(set.intersection(*(set(c) for c in curves)))
             xs, ms, ss = [], [], []
             for s in steps:
@@ -185,9 +191,9 @@ def plot_mean(results: list[dict], path: Path) -> None:
                     ms.append(m)
                     ss.append(sd or 0.0)
             if xs:
-                line, = ax.plot(xs, ms, "o-", label=f"{label} (n={len(curves)})")
+                ax.plot(xs, ms, "o-", color=colours[label], label=f"{label} (n={len(curves)})")
                 ax.fill_between(xs, [m - s for m, s in zip(ms, ss)], [m + s for m, s in zip(ms, ss)],
-                                color=line.get_color(), alpha=0.15)
+                                color=colours[label], alpha=0.15)
         copy = mean_std({r["scene"]: r["final"].get(f"novel_view.copy_{region}_psnr") for r in ok}.values())[0]
         if copy is not None:
             ax.axhline(copy, color="grey", ls="--", label="copy nearest frame")
@@ -195,8 +201,8 @@ def plot_mean(results: list[dict], path: Path) -> None:
         ax.set_xlabel("training time (s, evaluation excluded)")
         ax.set_ylabel("PSNR (dB)")
         ax.grid(alpha=0.3)
-    if axes[0].get_legend_handles_labels()[0]:
-        axes[0].legend(fontsize=8)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
     fig.tight_layout()
     tmp = path.with_name(f".{path.stem}.tmp.png")
     fig.savefig(tmp)

@@ -60,10 +60,23 @@ def scene_present(path: Path) -> bool:
 def prepare_scene(scene: Scene, log_dir: Path) -> Optional[str]:
     """Generate a synthetic scene once (``omnire synth``) unless its folder holds one already;
     None when ready, else the error with the log tail. Generated beside the target and renamed
-    into place, so concurrent or killed preparations never leave a half-written scene."""
-    if scene.synth is None or scene_present(scene.data):
+    into place, so concurrent or killed preparations never leave a half-written scene. The
+    options are recorded beside it (``.<name>.synth.json``): a scene generated with other
+    options is an error, not silently reused."""
+    if scene.synth is None:
         return None
     data = Path(scene.data)
+    marker = data.parent / f".{data.name}.synth.json"
+    options = {"preset": scene.synth, "args": list(scene.synth_args)}
+    if scene_present(data):
+        try:
+            made = json.loads(marker.read_text())
+        except (OSError, ValueError):
+            return None  # a scene put there by hand: use it
+        if made != options:
+            return (f"{data} was generated with {made}, the batch asks for {options}: delete the folder "
+                    f"(and {marker.name}) to generate it again, or name the scene differently")
+        return None
     data.parent.mkdir(parents=True, exist_ok=True)
     tmp = data.parent / f".{data.name}.partial-{socket.gethostname()}-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
@@ -80,6 +93,7 @@ def prepare_scene(scene: Scene, log_dir: Path) -> Optional[str]:
         shutil.rmtree(tmp, ignore_errors=True)
         return f"`omnire synth {scene.synth}` for scene {scene.name!r} failed (exit {rc}); log {log}:\n" + \
             log_tail(log, start)
+    atomic_write_json(marker, options)
     try:
         os.rename(tmp, data)  # replaces an empty folder; fails if another worker got there first
     except OSError as exc:
@@ -87,6 +101,13 @@ def prepare_scene(scene: Scene, log_dir: Path) -> Optional[str]:
         if not scene_present(data):
             return f"cannot move the generated scene into {data}: {exc}"
     return None
+
+
+def atomic_write_json(path: Path, value) -> None:
+    """Temp file + rename (the core's atomic writer would import torch into the worker)."""
+    tmp = path.parent / f".{path.name}.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(value))
+    os.replace(tmp, path)
 
 
 def log_tail(path: Path, start: int = 0, lines: int = TAIL_LINES) -> str:
@@ -162,10 +183,11 @@ def execute_job(job: Job, report: Optional[Report] = None, scene_error: Optional
     resumes it). ``ran`` says whether a trainer was started."""
     t0 = time.monotonic()
     result = base_result(job)
-    result.update(status="failed", exit_code=None, elapsed_s=0.0, ran=False, resumed_from=None)
+    result.update(status="failed", exit_code=None, elapsed_s=0.0, ran=False, resumed_from=None,
+                  started_at=time.time())
 
     def done(**kw) -> dict:
-        result.update(kw, elapsed_s=time.monotonic() - t0)
+        result.update(kw, elapsed_s=time.monotonic() - t0, ended_at=time.time())
         return result
 
     def say(info: dict) -> bool:
@@ -181,9 +203,9 @@ def execute_job(job: Job, report: Optional[Report] = None, scene_error: Optional
     if say({"state": "waiting"}):
         return done(status="interrupted", error="stopped by the batch before it started")
     lock = _lock(job.run_dir.parent / f".{job.name}.lock", lock_wait_s)
-    if lock is None:
-        return done(error=f"{job.run_dir}: another process holds its lock (an earlier attempt still running?); "
-                          "rerun when it has stopped")
+    if lock is None:  # transient: the next rerun tries again
+        return done(status="interrupted", error=f"{job.run_dir}: another process holds its lock (an earlier "
+                                                  "attempt still running?); rerun when it has stopped")
     try:
         return _execute_locked(job, result, done, say, redo_changed, stop_grace_s, lock)
     finally:

@@ -192,3 +192,17 @@ def test_run_state(tmp_path):
     assert run_state(job.run_dir, job.identity()) == ("finished", 100)
     (job.run_dir / "run.json").write_text(json.dumps({"argv": job.train_args()[1:] + ["--method.x", "1"]}))
     assert run_state(job.run_dir, job.identity()) == ("changed", None)
+
+
+def test_generated_scene_with_other_options_is_not_reused(tmp_path):
+    from omnire_batch.runner import prepare_scene
+    from omnire_batch.spec import Scene
+
+    data = tmp_path / "scenes" / "u"
+    (data / "ego_pose").mkdir(parents=True)
+    scene = Scene("u", "processed", data, (), "urban", ("--frames", "30"))
+    assert prepare_scene(scene, tmp_path / "logs") is None  # a scene put there by hand is used
+    (tmp_path / "scenes" / ".u.synth.json").write_text(json.dumps({"preset": "urban", "args": ["--frames", "30"]}))
+    assert prepare_scene(scene, tmp_path / "logs") is None
+    other = Scene("u", "processed", data, (), "urban", ("--frames", "40"))
+    assert "was generated with" in prepare_scene(other, tmp_path / "logs")

@@ -63,6 +63,10 @@ args = "--method.no-such-flag 1"
         assert r["final"]["novel_view.views"] > 0 and r["final"]["novel_view.full_psnr"] > 5
         assert sorted(checkpoint_steps(out / "runs" / "tiny" / f"{label}-seed0")) == [20, 40]
     assert saved["summary"]["methods"]["3dgs"]["novel_view.full_psnr"]["n"] == 1
+    # 1 CPU each on 2 CPUs: never three trainers at once
+    events = sorted([(r["started_at"], 1) for r in saved["results"]] + [(r["ended_at"], -1) for r in saved["results"]])
+    running = [sum(d for _, d in events[:i + 1]) for i in range(len(events))]
+    assert max(running) <= 2, events
     md = (out / "results.md").read_text()
     assert "### Across scenes and seeds" in md and "| 3dgs | 1/1 |" in md and "| broken | 0/1 |" in md
     assert "| broken | failed (exit 2) |" in md  # omnire bench train's per-scene table
