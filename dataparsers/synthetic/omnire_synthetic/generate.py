@@ -301,7 +301,8 @@ def _generate(out: str | Path, preset: str, opts: SynthOptions, progress, t_star
             centres, radii = _object_spheres(actors, t, np.linalg.inv(sensor))
             cull = CullGroups(torch.arange(0, static.faces.shape[0]), centres, radii,
                               [torch.arange(int(obj_ranges[k + 1]), int(obj_ranges[k + 2])) for k in range(len(actors))])
-        rng_, face_l, _ = raycast_via_id_buffer(v_s, faces_t, ray_dirs, opts.lidar_elevation_deg, cull=cull)
+        rng_, face_l, _ = raycast_via_id_buffer(v_s, faces_t, ray_dirs, opts.lidar_elevation_deg, cull=cull,
+                                                exact_groups=None if cull is None else cull.faces_of)
         ok = torch.isfinite(rng_).numpy()
         p_s = ray_dirs[ok] * rng_.numpy()[ok, None]  # (N, 3) sensor frame
         fl = face_l[torch.from_numpy(ok)]

@@ -17,10 +17,14 @@ optional betas) and 2D boxes, from any pose-estimator plugin (registry
 
 :func:`prepare_human_poses` runs the whole thing for a scene and fills
 ``scene.human_poses``: sequences a dataparser already provided (e.g. the reference
-implementation's ``humanpose/smpl.pkl``) are kept and SLERP-completed; otherwise an
-estimator runs when one is given; otherwise (``fallback="neutral"``) a pedestrian starts
-from a neutral standing pose facing its track heading and relies on pose refinement.
-Each sequence's ``source`` says which path it took.
+implementation's ``humanpose/smpl.pkl``) are kept and SLERP-completed; otherwise the
+estimator's matched keypoints and the LiDAR points in the box go to the body fitter
+(:mod:`omnire_body.fitting`: all cameras and frames of a track at once, temporal and gait
+priors) which returns a :class:`FusedPoseSequence` with a per-frame confidence (frames no
+source observed come from the fit's priors, not SLERP); tracks the fitter has nothing for
+but a matched tracklet use (b)-(c) above; otherwise (``fallback="neutral"``) a pedestrian
+starts from a neutral standing pose facing its track heading and relies on pose
+refinement. Each sequence's ``source`` says which path it took.
 
 Rotations are SMPL conventions (DESIGN.md section 3): canonical body frame x = body's left,
 y up, z forward; ``body_pose`` relative to the parent joint and to the template's rest pose.
@@ -52,6 +56,9 @@ class HumanTracklet:
         betas: (T, B) shape coefficients (B may be 0).
         source: estimator name.
         key: optional estimator-side id (e.g. the region the tracklet was cut from).
+        keypoints: optional (T, 24, 3) 2D keypoints in SMPL joint order: pixel u, v at the
+            loaded image resolution and a confidence in [0, 1] (0 = not detected). The body
+            fitter uses them; the estimator-only path uses the rotations.
     """
 
     camera: int
@@ -62,6 +69,23 @@ class HumanTracklet:
     betas: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0)))
     source: str = "estimator"
     key: Any = None
+    keypoints: Optional[np.ndarray] = None
+
+
+@dataclasses.dataclass
+class FusedPoseSequence(HumanPoseSequence):
+    """A :class:`HumanPoseSequence` from the body fitter, with per-frame evidence.
+
+    Attributes (besides the base ones; ``valid`` = frames some source observed):
+        confidence: (F,) in [0, 1): 0 where no source observed the frame.
+        frame_sources: source name -> (F,) bool, the frames each source observed
+            (``lidar`` and the image estimators' names).
+        lidar_points: (F,) LiDAR points on the body per frame.
+    """
+
+    confidence: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    frame_sources: dict = dataclasses.field(default_factory=dict)
+    lidar_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, int))
 
 
 class PoseEstimator(Protocol):
@@ -270,7 +294,7 @@ def neutral_sequence(track: ActorTrack, joints: np.ndarray) -> HumanPoseSequence
 
 # ---------------------------------------------------------------------------------- pipeline
 def estimator_tracklets(scene: SceneData, estimator: PoseEstimator, tracks: list[ActorTrack],
-                        min_box_height: float = 40.0) -> list[HumanTracklet]:
+                        min_box_height: float = 16.0) -> list[HumanTracklet]:
     """Run ``estimator`` on every camera with the projected boxes of ``tracks`` (taller
     than ``min_box_height`` pixels, training and held-out frames alike: poses of held-out
     frames are interpolated by the nodes, not read from these) as hints."""
@@ -287,15 +311,79 @@ def estimator_tracklets(scene: SceneData, estimator: PoseEstimator, tracks: list
     return out
 
 
+def keypoint_observations(scene: SceneData, track: ActorTrack, tracklets: list[HumanTracklet],
+                          min_frame_iou: float = 0.1) -> list:
+    """The 2D keypoints of ``tracklets`` (matched to ``track``) as fitter observations; frames
+    whose tracklet box overlaps the projected 3D box less than ``min_frame_iou`` (an identity
+    switch, someone else caught in the crop) are left out."""
+    from omnire_body.fitting import KeypointObservation
+
+    out = []
+    for t in tracklets:
+        if t.keypoints is None:
+            continue
+        cam = scene.cameras[t.camera]
+        for i, f in enumerate(t.frames):
+            f = int(f)
+            box = project_box(track, scene, t.camera, f)
+            if box is None or box_iou(t.boxes[i], box) < min_frame_iou:
+                continue
+            kp = np.asarray(t.keypoints[i], dtype=np.float64)
+            out.append(KeypointObservation(f, t.camera, cam.intrinsics, np.linalg.inv(cam.cam_to_world[f]),
+                                           kp[:, :2], kp[:, 2], float(box[3] - box[1]), t.source))
+    return out
+
+
+def track_data(scene: SceneData, track: ActorTrack, tracklets: list[HumanTracklet], config=None):
+    """Everything the body fitter sees of ``track``: LiDAR points in its box per frame and
+    the keypoints of its matched ``tracklets``."""
+    from omnire_body.fitting import FitConfig, TrackData, points_for_fit
+
+    cfg = config or FitConfig()
+    F = scene.num_frames
+    points: list = [None] * F
+    if scene.lidar is not None:
+        for f in track.frames():
+            p = scene.lidar.points[int(f)]
+            points[int(f)] = points_for_fit(p, track.poses[int(f)], track.size, cfg.box_margin, cfg.ground_slice)
+    return TrackData(track.poses, np.asarray(track.size, dtype=np.float64), np.asarray(track.present, bool), points,
+                     keypoint_observations(scene, track, tracklets))
+
+
+def fused_sequence(track: ActorTrack, result, data, estimator_names: list[str]) -> FusedPoseSequence:
+    """The fitter's result as a sequence: fitted rotations at present frames (absent ones
+    hold the nearest present frame), ``valid`` = observed frames."""
+    present = np.asarray(track.present, bool)
+    go = complete_rotations(result.global_orient, present)
+    bp = complete_rotations(result.body_pose, present)
+    kp_sources: dict[str, np.ndarray] = {}
+    for o in data.keypoints:
+        kp_sources.setdefault(o.source, np.zeros(len(present), bool))[o.frame] = True
+    frame_sources = {"lidar": result.lidar_frames.copy()}
+    for name, frames in kp_sources.items():
+        frame_sources[name] = frames & result.keypoint_frames
+    used = [k for k, v in frame_sources.items() if v.any()]
+    valid = (result.lidar_frames | result.keypoint_frames) & present
+    return FusedPoseSequence(track.track_id, go, bp, np.zeros(0), valid, source="fit(" + "+".join(used) + ")",
+                             confidence=np.where(present, result.confidence, 0.0), frame_sources=frame_sources,
+                             lidar_points=data.lidar_counts())
+
+
 def prepare_human_poses(scene: SceneData, estimator: Optional[PoseEstimator] = None,
                         joints: Optional[np.ndarray] = None, fallback: str = "neutral",
-                        min_iou: float = 0.2, min_box_height: float = 40.0) -> dict[str, str]:
+                        min_iou: float = 0.2, min_box_height: float = 16.0, fit: bool = True,
+                        fit_config=None, template=None) -> dict[str, str]:
     """Fill ``scene.human_poses`` for every human track (idempotent).
 
     Order: sequences already in the scene (dataparser, e.g. ``smpl.pkl``) are SLERP-completed;
-    the others come from ``estimator`` (matched by IoU, completed); the rest, with
-    ``fallback="neutral"``, get :func:`neutral_sequence` (``joints``: rest joints of the
-    body template, default the shipped one); with ``fallback="none"`` they get nothing.
+    for the others ``estimator`` (if given) runs on every camera and its tracklets are
+    matched to the tracks by IoU; then, with ``fit``, the body fitter
+    (:mod:`omnire_body.fitting`) poses each track from its LiDAR points and matched
+    keypoints (all cameras and frames at once, with the temporal and gait priors) into a
+    :class:`FusedPoseSequence`; without ``fit``, the matched tracklets' rotations are used,
+    SLERP-completed (the estimator-only path). Tracks nothing observed get, with
+    ``fallback="neutral"``, :func:`neutral_sequence` (``joints``: rest joints of the body
+    template, default the shipped one); with ``fallback="none"`` nothing.
     The estimator gets the projected boxes taller than ``min_box_height`` pixels as hints.
     Returns {track id: path} where path describes what happened (logged by the SMPL node).
     """
@@ -305,14 +393,38 @@ def prepare_human_poses(scene: SceneData, estimator: Optional[PoseEstimator] = N
     paths = {}
     for t in humans:
         seq = scene.human_poses.get(t.track_id)
-        if seq is not None:
+        if seq is not None and not isinstance(seq, FusedPoseSequence):
             scene.human_poses[t.track_id] = complete_sequence(seq)
     todo = [t for t in humans if t.track_id not in scene.human_poses]
+    tracklets: list[HumanTracklet] = []
+    assignment: dict[int, str] = {}
     if todo and estimator is not None:
         tracklets = estimator_tracklets(scene, estimator, todo, min_box_height)
         assignment = match_tracklets(scene, tracklets, todo, min_iou=min_iou)
-        scene.human_poses.update(sequences_from_tracklets(scene, tracklets, assignment))
-        todo = [t for t in todo if t.track_id not in scene.human_poses]
+    if todo and fit:
+        from omnire_body.fitting import BodyFitter, FitConfig
+
+        if template is None:
+            from omnire_body.template import load_template
+
+            template = load_template()
+        cfg = fit_config or FitConfig()
+        fitter = BodyFitter.from_template(template, cfg)
+        names = sorted({t.source for t in tracklets})
+        for t in todo:
+            mine = [tracklets[k] for k, tid in assignment.items() if tid == t.track_id]
+            data = track_data(scene, t, mine, cfg)
+            observed = ((data.lidar_counts() >= cfg.min_points) | (data.keypoint_evidence() >= cfg.min_keypoints)) \
+                & data.present
+            if not observed.any():
+                continue
+            result = fitter.fit(data, scene.frame_timestamps)
+            scene.human_poses[t.track_id] = fused_sequence(t, result, data, names)
+    left = {t.track_id for t in todo if t.track_id not in scene.human_poses}
+    if left and tracklets:  # no fit (or nothing it could use): the tracklets' own rotations
+        mine = {k: tid for k, tid in assignment.items() if tid in left}
+        scene.human_poses.update(sequences_from_tracklets(scene, tracklets, mine))
+    todo = [t for t in todo if t.track_id not in scene.human_poses]
     for t in todo:
         if fallback == "neutral":
             if joints is None:
@@ -327,10 +439,26 @@ def prepare_human_poses(scene: SceneData, estimator: Optional[PoseEstimator] = N
 
 
 def describe_sequence(seq: HumanPoseSequence, present: np.ndarray) -> str:
-    """One line saying where a sequence came from (for the training log)."""
+    """One line saying where a sequence came from and how much of it was observed (for the
+    training log)."""
     if seq.source == "neutral":
         return "neutral standing pose facing the box heading (no estimate; body poses refined in training)"
+    present = np.asarray(present, bool)
     observed = int((seq.valid & present).sum())
+    if isinstance(seq, FusedPoseSequence):
+        parts = []
+        for name, frames in seq.frame_sources.items():
+            n = int((frames & present).sum())
+            if not n:
+                continue
+            if name == "lidar":
+                pts = seq.lidar_points[frames & present]
+                parts.append(f"lidar {n} frames (median {int(np.median(pts))} points)")
+            else:
+                parts.append(f"{name} {n} frames")
+        conf = seq.confidence[present]
+        return (f"{seq.source}: {observed} of {int(present.sum())} frames observed ({', '.join(parts)}); "
+                f"{int(present.sum()) - observed} from the temporal/gait prior; mean confidence {conf.mean():.2f}")
     return f"{seq.source}: {observed} observed frames, {int(present.sum()) - observed} completed by SLERP"
 
 

@@ -3,12 +3,16 @@
 Scene preparation (the node type's ``prepare``, run once per scene before tracks are
 assigned, only when a method enables this node type): the human pose pipeline of
 ``omnire_body.humanpose`` fills ``scene.human_poses``. Sequences a dataparser provided (e.g.
-``humanpose/smpl.pkl``) are SLERP-completed; pedestrians without one get poses from the
-best available registered pose estimator (``omnire_register_pose_estimators``) matched by
-2D-box IoU; the rest start from a neutral standing pose. No estimator is built when every
-pedestrian already has a sequence (or the scene has none). ``accepts`` then takes every
+``humanpose/smpl.pkl``) are SLERP-completed; for the other pedestrians the best available
+registered image pose estimator (``omnire_register_pose_estimators``) runs on every camera,
+its tracklets are matched by 2D-box IoU, and the body fitter (``omnire_body.fitting``)
+poses each track from its LiDAR points and keypoints with temporal and gait priors (one
+fused sequence per track, with a per-frame confidence); pedestrians nothing observed start
+from a neutral standing pose. No estimator is built (nor its package imported) when every
+pedestrian already has a sequence or the scene has none. ``accepts`` then takes every
 visible pedestrian with a usable box and a pose sequence (priority 20, above the deformable
-node). Each pedestrian's path is written to the run's log; the node prints a summary.
+node). Each pedestrian's path (sources, observed frames, confidence) is written to the
+run's log with a summary line; the node prints a one-line summary on the console.
 """
 from __future__ import annotations
 
@@ -25,11 +29,19 @@ def prepare_scene(scene, plugins) -> None:
 
     humans = [t for t in scene.tracks if t.category == "human"]
     estimator = None
-    if any(t.track_id not in scene.human_poses for t in humans):
+    needed = any(t.track_id not in scene.human_poses for t in humans)
+    if needed:
         estimator = select_estimator(plugins.pose_estimators, "auto")
     paths = prepare_human_poses(scene, estimator=estimator)
     for track_id, path in sorted(paths.items()):
         log.info("smpl: pedestrian %s: %s", track_id, path)
+    if paths:
+        from collections import Counter
+
+        sources = Counter(scene.human_poses[t].source if t in scene.human_poses else "none" for t in paths)
+        est = estimator.name if estimator is not None else ("none available" if needed else "not needed")
+        log.info("smpl: %d pedestrians posed: %s (image estimator: %s)", len(paths),
+                 ", ".join(f"{n} {src}" for src, n in sorted(sources.items())), est)
 
 
 def accepts(track, scene) -> bool:
