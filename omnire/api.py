@@ -23,6 +23,7 @@ from omnire.errors import ConfigError, MissingFileError, UserError
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians, rgb_to_sh0
 from omnire.geometry import (
     axis_angle_to_rotmat,
+    axis_rotation,
     invert_se3,
     quat_multiply,
     quat_to_rotmat,
@@ -90,7 +91,7 @@ __all__ = [
     "NodeTypeSpec", "ParamGroup", "PoseEstimatorSpec", "RasterInputError", "RasterSettings", "RasterizerSpec",
     "Reconstruction", "Registry", "RenderOutput", "SceneData", "SceneDataError", "SceneTime", "SceneWriterSpec",
     "Splats", "TrainConfig", "TrainObserverSpec", "Trainer", "TrainerConfig", "UserError", "View", "atomic_write_bytes",
-    "atomic_write_text", "axis_angle_to_rotmat", "bracket", "check_raster_inputs", "colour_from_images",
+    "atomic_write_text", "axis_angle_to_rotmat", "axis_rotation", "bracket", "check_raster_inputs", "colour_from_images",
     "far_shell", "first_pose_world", "frame_blend", "frame_range", "holdout_split", "hookimpl", "in_frustum",
     "init_background_params", "init_gaussian_params", "interpolate_poses", "interpolate_track", "invert_se3",
     "knn_scales", "lidar_points_for_init", "points_in_box", "positional_encoding", "quat_multiply",

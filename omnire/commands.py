@@ -18,7 +18,7 @@ from omnire.ui import output_console
 
 
 def train_main(argv: list[str], plugins) -> int:
-    from omnire.evaluation import format_table
+    from omnire.evaluation import format_camera_table, format_table
     from omnire.trainer import Trainer
 
     config = parse_train_args(argv, plugins)
@@ -28,6 +28,8 @@ def train_main(argv: list[str], plugins) -> int:
                   f"gaussians: {trainer.model.num_gaussians()}  nodes: {list(trainer.model.nodes)}")
     result = trainer.train()
     console.print(format_table(result, f"{config.method_name} on {trainer.scene.name} at step {trainer.step}"))
+    if len(trainer.scene.cameras) > 1 and (cameras := format_camera_table(result)) is not None:
+        console.print(cameras)
     for warning in result.get("warnings", []):
         console.print(f"[yellow]warning:[/] {warning}")
     return 0
@@ -48,7 +50,7 @@ class EvalArgs:
 def eval_main(argv: list[str], plugins) -> int:
     import torch
 
-    from omnire.evaluation import evaluate, format_table
+    from omnire.evaluation import evaluate, format_camera_table, format_table
     from omnire.observations import Observations
     from omnire.runtime import Reconstruction
 
@@ -58,7 +60,10 @@ def eval_main(argv: list[str], plugins) -> int:
     with torch.no_grad():
         result = evaluate(recon, Observations(scene, recon.device), scene.views(scene.train_frames),
                           scene.views(scene.test_frames), args.train_views)
-    output_console().print(format_table(result, f"{recon.run_info.method} at step {recon.step}"))
+    console = output_console()
+    console.print(format_table(result, f"{recon.run_info.method} at step {recon.step}"))
+    if len(scene.cameras) > 1 and (cameras := format_camera_table(result)) is not None:
+        console.print(cameras)
     return 0
 
 
@@ -80,9 +85,17 @@ class RenderArgs:
     """Output directory (default: <run dir>/renders)."""
     depth: bool = False
     """Also write depth images (16-bit PNG, millimetres)."""
+    video: bool = False
+    """Also write an MP4 (H.264) per camera of the selected frames in time order."""
+    fps: Optional[float] = None
+    """With --video: interpolate the camera path to this frame rate over the selected frames' time span (the video
+    then holds frames between the recorded ones; PNGs are written for the recorded frames only). Default: the
+    recorded frames at the log's rate."""
 
 
 def render_main(argv: list[str], plugins) -> int:
+    import contextlib
+
     import numpy as np
     import torch
 
@@ -103,8 +116,23 @@ def render_main(argv: list[str], plugins) -> int:
         frames = {"test": scene.test_frames, "train": scene.train_frames,
                   "all": np.arange(scene.num_frames)}[args.split].tolist()
     out_dir = args.output or Path(args.run_dir) / "renders"
+    if args.fps is not None and not (args.video and args.fps > 0):
+        raise ConfigError(f"--fps {args.fps}: needs --video and a rate > 0")
     count = 0
-    with torch.no_grad():
+    with torch.no_grad(), contextlib.ExitStack() as stack:
+        videos, path = {}, None
+        if args.video:  # the camera path shared with omnire sim (omnire/camerapath.py)
+            from omnire.camerapath import interpolated_path, log_seconds, recorded_fps
+            from omnire.io.video import Mp4Writer
+
+            frames = sorted(frames)
+            if args.fps:
+                sec = log_seconds(scene)
+                path = interpolated_path(scene, args.fps, [scene.cameras[c].name for c in cams],
+                                         float(sec[frames[0]]), float(sec[frames[-1]]))
+            for c in cams:
+                videos[c] = stack.enter_context(Mp4Writer(out_dir / f"{scene.cameras[c].name}.mp4",
+                                                          args.fps or recorded_fps(scene)))
         for f in frames:
             for c in cams:
                 view = View(c, int(f))
@@ -113,8 +141,14 @@ def render_main(argv: list[str], plugins) -> int:
                 write_png(out_dir / f"{name}.png", result.rgb)
                 if args.depth:
                     write_png(out_dir / f"{name}_depth.png", result.depth * 1000.0, bits=16)
+                if videos and path is None:
+                    videos[c].append(result.rgb)
                 count += 1
-    output_console().print(f"wrote {count} images to {out_dir}")
+        for i in range(len(path) if path is not None else 0):
+            for k, c in enumerate(cams):
+                videos[c].append(recon.render(path.camera(k, i, recon.device).shifted(args.shift),
+                                              path.time(scene, i)).rgb)
+    output_console().print(f"wrote {count} images{f' and {len(videos)} videos' if videos else ''} to {out_dir}")
     return 0
 
 

@@ -25,9 +25,6 @@ def nearest_train_frame(frame: int, train_frames: np.ndarray) -> int:
     return int(train_frames[np.flatnonzero(d == d.min())[0]])
 
 
-REGIONS = ("full", "human", "vehicle")
-
-
 def backproject(z: torch.Tensor, pixels: torch.Tensor, width: int, K: torch.Tensor, cam_to_world: torch.Tensor) -> torch.Tensor:
     """World points (P,3) at depths ``z`` (P,) (along the camera axis) through the centres of
     flat ``pixels`` (P,) of an image ``width`` wide."""
@@ -57,8 +54,11 @@ def evaluate_views(recon, observations, views: list[View], with_copy_baseline: b
         result = recon.render_view(view)
         t_render += time.perf_counter() - t0
         target = observations.image(view)
-        masks = {"full": None, "human": observations.dynamic_mask(view, "human"),
+        scene_pixels = observations.scene_pixels(view)  # the recording vehicle's pixels are no scene
+        masks = {"full": scene_pixels, "human": observations.dynamic_mask(view, "human"),
                  "vehicle": observations.dynamic_mask(view, "vehicle")}
+        if scene_pixels is not None:
+            masks["human"], masks["vehicle"] = masks["human"] * scene_pixels, masks["vehicle"] * scene_pixels
         near = nearest_train_frame(view.frame, scene.train_frames) if with_copy_baseline else None
         other = observations.image(View(view.camera, near)) if with_copy_baseline else None
         for region, mask in masks.items():
@@ -69,7 +69,14 @@ def evaluate_views(recon, observations, views: list[View], with_copy_baseline: b
             if other is not None:
                 add(f"copy_{region}_psnr", psnr(other, target, mask))
                 add(f"copy_{region}_ssim", ssim(other, target, mask))
+        camera_name = scene.cameras[view.camera].name
+        add(f"camera.{camera_name}.psnr", psnr(result.rgb, target, masks["full"]))
+        if other is not None:
+            add(f"camera.{camera_name}.copy_psnr", psnr(other, target, masks["full"]))
         lidar = observations.lidar(view)
+        if lidar is not None and scene_pixels is not None:
+            on_scene = scene_pixels.reshape(-1)[lidar[0]] > 0.5
+            lidar = (lidar[0][on_scene], lidar[1][on_scene]) if bool(on_scene.any()) else None
         if lidar is not None:
             pix, z = lidar
             add("depth_rmse", depth_errors(result.depth, pix, z, max_depth)[0])
@@ -81,7 +88,13 @@ def evaluate_views(recon, observations, views: list[View], with_copy_baseline: b
                 gt = backproject(z[keep], pix[keep], W, camera.K, camera.cam_to_world)
                 add("depth_chamfer", chamfer_distance(pred, gt))
     out = {"views": len(views), "render_fps": len(views) / t_render if t_render > 0 else float("nan")}
-    out.update({k: _mean(v) for k, v in sorted(acc.items())})
+    out.update({k: _mean(v) for k, v in sorted(acc.items()) if not k.startswith("camera.")})
+    per_camera: dict[str, dict[str, float]] = {}
+    for k, v in sorted(acc.items()):
+        if k.startswith("camera."):
+            _, name, metric = k.split(".", 2)
+            per_camera.setdefault(name, {})[metric] = _mean(v)
+    out["per_camera"] = per_camera
     out["psnr"], out["ssim"] = out.get("full_psnr", float("nan")), out.get("full_ssim", float("nan"))
     return out
 
@@ -126,4 +139,20 @@ def format_table(result: dict, title: str = "evaluation"):
                       f(r, f"{prefix}human_psnr"), f(r, f"{prefix}human_ssim", 3),
                       f(r, f"{prefix}vehicle_psnr"), f(r, f"{prefix}vehicle_ssim", 3),
                       "-" if prefix else f(r, "depth_rmse"), "-" if prefix else f(r, "depth_chamfer", 3))
+    return table
+
+
+def format_camera_table(result: dict, title: str = "novel views per camera"):
+    """Held-out PSNR per camera next to the copy-nearest-frame baseline (None without held-out views)."""
+    from rich.table import Table
+
+    per_camera = (result.get("novel_view") or {}).get("per_camera") or {}
+    if not per_camera:
+        return None
+    table = Table(title=title)
+    for col in ("camera", "PSNR", "copy nearest", "margin"):
+        table.add_column(col)
+    for name, r in per_camera.items():
+        a, b = r.get("psnr", float("nan")), r.get("copy_psnr", float("nan"))
+        table.add_row(name, f"{a:.2f}", f"{b:.2f}", f"{a - b:+.2f}")
     return table

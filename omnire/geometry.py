@@ -17,16 +17,21 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def numpy_compatible(fn: F) -> F:
-    """Let a torch function take numpy arrays: numpy inputs are converted to float64
-    tensors and the result back to numpy (tuples element-wise)."""
+    """Let a torch function take numpy arrays (or plain floats): when no argument is a
+    tensor, arrays and floats are converted to float64 tensors and the result back to numpy
+    (tuples element-wise). Integer arguments (axis numbers) are passed through."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
-        if not any(isinstance(a, np.ndarray) for a in list(args) + list(kwargs.values())):
+        values = list(args) + list(kwargs.values())
+        if any(torch.is_tensor(a) for a in values) or not any(
+                isinstance(a, (np.ndarray, float, np.floating)) for a in values):
             return fn(*args, **kwargs)
 
         def to_t(a: Any) -> Any:
-            return torch.from_numpy(np.array(a, dtype=np.float64)) if isinstance(a, np.ndarray) else a
+            if isinstance(a, (np.ndarray, float, np.floating)):
+                return torch.from_numpy(np.array(a, dtype=np.float64))
+            return a
 
         out = fn(*(to_t(a) for a in args), **{k: to_t(v) for k, v in kwargs.items()})
         if isinstance(out, tuple):
@@ -138,11 +143,22 @@ def slerp_rotmats(R0: torch.Tensor, R1: torch.Tensor, w: torch.Tensor | float) -
 
 
 @numpy_compatible
-def rot_z(angle: torch.Tensor) -> torch.Tensor:
-    """(...,) angles in radians -> (..., 3, 3) rotations about +z."""
+def axis_rotation(axis: int, angle: torch.Tensor) -> torch.Tensor:
+    """(...,) angles in radians -> (..., 3, 3) right-handed rotations about coordinate axis
+    ``axis`` (0 = x, 1 = y, 2 = z)."""
+    if axis not in (0, 1, 2):
+        raise ValueError(f"axis_rotation: axis must be 0, 1 or 2, got {axis}")
     c, s = torch.cos(angle), torch.sin(angle)
-    zero, one = torch.zeros_like(c), torch.ones_like(c)
-    return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).reshape(*angle.shape, 3, 3)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    R = torch.zeros(*angle.shape, 3, 3, dtype=angle.dtype, device=angle.device)
+    R[..., axis, axis] = 1.0
+    R[..., i, i], R[..., i, j], R[..., j, i], R[..., j, j] = c, -s, s, c
+    return R
+
+
+def rot_z(angle: torch.Tensor) -> torch.Tensor:
+    """(...,) angles in radians -> (..., 3, 3) rotations about +z (numpy arrays and floats too)."""
+    return axis_rotation(2, angle)
 
 
 @numpy_compatible

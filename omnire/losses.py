@@ -27,7 +27,8 @@ class LossContext:
         lidar_pixels: (P,) flat pixel indices with a LiDAR return, or None.
         lidar_depth: (P,) LiDAR depth along the camera z axis at those pixels.
         sky_mask: (H, W, 1) 1 where sky, or None.
-        regularization: node-provided terms (name -> scalar).
+        scene_pixels: (H, W, 1) 0 on the recording vehicle (ego mask), 1 elsewhere; None =
+            every pixel. Losses ignore the vehicle's pixels.
         step: training step.
     """
 
@@ -39,15 +40,21 @@ class LossContext:
     lidar_pixels: Optional[torch.Tensor] = None
     lidar_depth: Optional[torch.Tensor] = None
     sky_mask: Optional[torch.Tensor] = None
-    regularization: dict = dataclasses.field(default_factory=dict)
+    scene_pixels: Optional[torch.Tensor] = None
     step: int = 0
 
 
-def l1_loss(ctx: LossContext) -> torch.Tensor:
-    err = (ctx.rgb - ctx.target).abs()
+def masked_mean(values: torch.Tensor, ctx: LossContext) -> torch.Tensor:
+    """Mean of (H, W, C) ``values`` weighted by the pixel weights, over the scene's pixels."""
     if ctx.pixel_weights is not None:
-        err = err * ctx.pixel_weights
-    return err.mean()
+        values = values * ctx.pixel_weights
+    if ctx.scene_pixels is None:
+        return values.mean()
+    return (values * ctx.scene_pixels).sum() / (ctx.scene_pixels.sum().clamp_min(1.0) * values.shape[-1])
+
+
+def l1_loss(ctx: LossContext) -> torch.Tensor:
+    return masked_mean((ctx.rgb - ctx.target).abs(), ctx)
 
 
 def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
@@ -75,18 +82,21 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 
 
 
 def dssim_loss(ctx: LossContext) -> torch.Tensor:
-    dis = 1.0 - ssim_map(ctx.rgb, ctx.target)
-    if ctx.pixel_weights is not None:
-        dis = dis * ctx.pixel_weights
-    return dis.mean()
+    return masked_mean(1.0 - ssim_map(ctx.rgb, ctx.target), ctx)
 
 
 def lidar_inverse_depth_loss(ctx: LossContext) -> Optional[torch.Tensor]:
     """L1 between rendered and LiDAR inverse depth at pixels with a LiDAR return."""
     if ctx.lidar_pixels is None or ctx.lidar_pixels.numel() == 0:
         return None
-    rendered = ctx.depth.reshape(-1)[ctx.lidar_pixels]
-    return (1.0 / rendered.clamp_min(0.1) - 1.0 / ctx.lidar_depth.clamp_min(0.1)).abs().mean()
+    pixels, depth = ctx.lidar_pixels, ctx.lidar_depth
+    if ctx.scene_pixels is not None:
+        keep = ctx.scene_pixels.reshape(-1)[pixels] > 0.5
+        pixels, depth = pixels[keep], depth[keep]
+        if pixels.numel() == 0:
+            return None
+    rendered = ctx.depth.reshape(-1)[pixels]
+    return (1.0 / rendered.clamp_min(0.1) - 1.0 / depth.clamp_min(0.1)).abs().mean()
 
 
 def opacity_mask_loss(ctx: LossContext) -> Optional[torch.Tensor]:
@@ -95,7 +105,10 @@ def opacity_mask_loss(ctx: LossContext) -> Optional[torch.Tensor]:
         return None
     target = 1.0 - ctx.sky_mask
     a = ctx.alpha.clamp(1e-6, 1 - 1e-6)
-    return torch.nn.functional.binary_cross_entropy(a, target)
+    if ctx.scene_pixels is None:
+        return torch.nn.functional.binary_cross_entropy(a, target)
+    bce = torch.nn.functional.binary_cross_entropy(a, target, reduction="none")
+    return (bce * ctx.scene_pixels).sum() / ctx.scene_pixels.sum().clamp_min(1.0)
 
 
 BUILTIN_LOSSES = {

@@ -1,10 +1,13 @@
 """What was recorded for each view of a scene, as losses and metrics consume it: the image,
-the LiDAR depth at its pixels, dynamic (human / vehicle) masks and sky masks. Everything is
-loaded lazily and cached per view, so a scene runtime that only renders reads none of it.
+the LiDAR depth at its pixels, dynamic (human / vehicle) masks, sky masks and the mask of the
+recording vehicle itself. Everything is loaded lazily and cached, so a scene runtime that
+only renders reads none of it.
 """
 from __future__ import annotations
 
 from typing import Optional
+
+import logging
 
 import torch
 
@@ -24,6 +27,7 @@ class Observations:
         self._lidar = LidarDepthTargets(scene, device)
         self._dynamic = DynamicMasks(scene, self.images, device)
         self._sky = SkyMasks(scene, self.images, device)
+        self._scene_valid: Optional[dict[int, Optional[torch.Tensor]]] = None
 
     def image(self, view: View) -> torch.Tensor:
         """(H, W, 3) float image in [0, 1]."""
@@ -41,6 +45,34 @@ class Observations:
     def sky_mask(self, view: View) -> Optional[torch.Tensor]:
         """(H, W, 1) {0, 1} sky mask, or None when neither the dataset nor LiDAR gives one."""
         return self._sky.get(view)
+
+    def scene_pixels(self, view: View) -> Optional[torch.Tensor]:
+        """(H, W, 1) {0, 1}: 0 where the recording vehicle itself is seen (its ego mask), 1
+        elsewhere; None when the camera has no ego mask (every pixel is scene)."""
+        if self._scene_valid is None:
+            self._scene_valid = self._load_ego_masks()
+        return self._scene_valid[view.camera]
+
+    def _load_ego_masks(self) -> dict[int, Optional[torch.Tensor]]:
+        out: dict[int, Optional[torch.Tensor]] = {}
+        estimated = {}
+        if self.scene.estimate_ego_masks and any(c.ego_mask_path is None for c in self.scene.cameras):
+            from omnire.egomask import estimate_scene_ego_masks
+
+            estimated = estimate_scene_ego_masks(self.scene, self.images)
+        for i, cam in enumerate(self.scene.cameras):
+            if cam.ego_mask_path is not None:
+                ego = self.images.get(cam.ego_mask_path, cam.width, cam.height, 1) > 0.5
+            elif cam.name in estimated and estimated[cam.name].any():
+                ego = torch.from_numpy(estimated[cam.name])[..., None]
+            else:
+                out[i] = None
+                continue
+            logging.getLogger("omnire.egomask").info(
+                "camera %s: %.1f%% of the image is the recording vehicle (%s)", cam.name, 100 * float(ego.float().mean()),
+                cam.ego_mask_path or "estimated")
+            out[i] = (~ego).float().to(self.device)
+        return out
 
     def preload(self, views: list[View], sky: bool = False) -> None:
         """Decode every image and build every mask of ``views`` now (e.g. before timing)."""

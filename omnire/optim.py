@@ -108,7 +108,3 @@ class Optimizers:
     def load_state_dict(self, state: dict) -> None:
         for name, opt in self.optimizers.items():
             opt.load_state_dict(state[name])
-
-
-def count_parameters(modules: dict[str, nn.Module]) -> int:
-    return sum(p.numel() for m in modules.values() for p in m.parameters())

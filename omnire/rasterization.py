@@ -48,7 +48,6 @@ import torch
 
 from omnire.camera import Camera
 from omnire.errors import ConfigError
-from omnire.registry import RasterizerSpec, Registry
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 MAX_ALPHA = 0.99

@@ -66,10 +66,6 @@ class Registry(Generic[SpecT]):
             self._entries[name] = spec
             self._provenance[name] = other._provenance[name]
 
-    def remove(self, name: str) -> None:
-        self._entries.pop(name, None)
-        self._provenance.pop(name, None)
-
     def get(self, name: str) -> SpecT:
         try:
             return self._entries[name]

@@ -85,7 +85,7 @@ class Reconstruction:
         config = parse_recorded_args(info, plugins)
         dev = torch.device(device or config.trainer.device)
         _, _, state = find_checkpoint(checkpoint or run.path, map_location=dev)
-        scene = config.dataparser.setup().parse().validate()
+        scene = config.dataparser.setup().load()
         recon = cls.restore(config, scene, plugins, dev, info.node_assignment, state)
         recon.run_info, recon.config, recon.run_dir = info, config, run
         return recon

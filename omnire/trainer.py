@@ -7,6 +7,7 @@ writes a checkpoint at the current step and stops with :class:`TrainingInterrupt
 """
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import logging
@@ -22,7 +23,7 @@ from omnire.config import to_dict
 from omnire.data.scene import SceneData, View
 from omnire.errors import ConfigError, UserError
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
-from omnire.losses import LossContext
+from omnire.losses import LossContext, masked_mean
 from omnire.observations import Observations
 from omnire.optim import Optimizers
 from omnire.rundir import RunDirectory, RunDirectoryError, RunInfo, find_checkpoint, step_of
@@ -90,7 +91,7 @@ class Trainer:
         logging.getLogger("omnire").addHandler(buffer)
         logging.getLogger("omnire").setLevel(logging.INFO)
         try:
-            self.scene = scene if scene is not None else config.dataparser.setup().parse().validate()
+            self.scene = scene if scene is not None else config.dataparser.setup().load()
             self.observations = Observations(self.scene, self.device)
             self.recon = Reconstruction.build(config.method, self.scene, plugins, self.device,
                                               self.observations.images, seed=tc.seed)
@@ -192,6 +193,7 @@ class Trainer:
             pixel_weights=pixel_weights,
             lidar_pixels=None if lidar is None else lidar[0], lidar_depth=None if lidar is None else lidar[1],
             sky_mask=obs.sky_mask(view) if self.use_sky_masks else None,
+            scene_pixels=obs.scene_pixels(view),
             step=self.step,
         )
 
@@ -231,7 +233,8 @@ class Trainer:
         self.recon.step = self.step
         self.strategy.step(self.model.gaussian_nodes(), self.optimizers, self.step)
         with torch.no_grad():
-            mse = float(((result.rgb.detach().clamp(0, 1) - ctx.target) ** 2).mean())
+            mse = float(masked_mean((result.rgb.detach().clamp(0, 1) - ctx.target) ** 2,
+                                    dataclasses.replace(ctx, pixel_weights=None)))
         return {"loss": float(loss.detach()), "psnr": psnr_from_mse(mse), **{k: float(v.detach()) for k, v in terms.items()}}
 
     def train(self) -> dict:

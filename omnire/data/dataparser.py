@@ -20,16 +20,49 @@ class DataparserConfig(InstantiateConfig):
     """Image scale relative to the files on disk (intrinsics are scaled to match)."""
     holdout_every: int = 10
     """Hold out every N-th frame (all cameras) for novel-view evaluation; 0 holds out none."""
+    ego_masks: str = "dataset"
+    """Pixels showing the recording vehicle, left out of losses and metrics: "dataset" (the
+    reader's own masks, if it has any), "auto" (estimated from the images where the reader
+    has none), "none", or a folder holding <camera name>.png per camera (non-zero = vehicle)."""
 
 
 class Dataparser:
-    """Reads one scene. Subclasses implement :meth:`parse`."""
+    """Reads one scene. Subclasses implement :meth:`parse`; callers use :meth:`load`."""
 
     def __init__(self, config: DataparserConfig) -> None:
         self.config = config
 
     def parse(self) -> SceneData:
         raise NotImplementedError
+
+    def load(self) -> SceneData:
+        """:meth:`parse`, then the ego-mask choice of the config applied, then validated."""
+        scene = self.parse()
+        apply_ego_mask_choice(scene, self.config.ego_masks)
+        return scene.validate()
+
+
+def apply_ego_mask_choice(scene: SceneData, choice: str) -> None:
+    """Set each camera's ego mask per ``choice`` (see :attr:`DataparserConfig.ego_masks`)."""
+    from omnire.errors import ConfigError, MissingFileError
+
+    if choice == "dataset":
+        return
+    if choice == "none":
+        for cam in scene.cameras:
+            cam.ego_mask_path = None
+        return
+    if choice == "auto":
+        scene.estimate_ego_masks = True
+        return
+    folder = Path(choice)
+    if not folder.is_dir():
+        raise ConfigError(f"--ego-masks {choice!r}: expected dataset, auto, none, or a folder of <camera>.png masks")
+    for cam in scene.cameras:
+        path = folder / f"{cam.name}.png"
+        if not path.is_file():
+            raise MissingFileError(f"{path}: no ego mask for camera {cam.name} in --ego-masks {folder}")
+        cam.ego_mask_path = path
 
 
 def frame_range(start: int, end: int, total: int, source: str) -> range:

@@ -196,6 +196,8 @@ class SceneData:
         human_poses: optional pose sequences keyed by track id.
         ego_poses: optional (F, 4, 4) ego-to-world.
         attribution: licence text to show with renders of this data.
+        estimate_ego_masks: estimate masks of the recording vehicle from the images for the
+            cameras without an ``ego_mask_path`` (:mod:`omnire.egomask`).
     """
 
     name: str
@@ -209,6 +211,7 @@ class SceneData:
     human_poses: dict[str, HumanPoseSequence] = dataclasses.field(default_factory=dict)
     ego_poses: Optional[np.ndarray] = None
     attribution: str = ""
+    estimate_ego_masks: bool = False
 
     @property
     def num_frames(self) -> int:

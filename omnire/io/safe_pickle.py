@@ -1,28 +1,29 @@
 """Restricted unpickling: pickles are code, so only an allowlist of data classes may load.
 
-Used for PandaSet's pandas DataFrames (``*.pkl.gz``), the reference implementation's
-``humanpose/smpl.pkl`` and user-given SMPL model files. Anything outside the allowlist
-(``os.system``, ``builtins.eval``, arbitrary classes) raises :class:`UnsafePickleError`
-naming the file and the refused global.
+Each reader passes the allowlist its format needs (:class:`PickleAllowlist`): numpy arrays
+and plain containers (:data:`NUMPY_DATA`) for every reader, plus e.g. pandas' DataFrame
+reconstructors for PandaSet's ``*.pkl.gz`` or stand-ins for chumpy arrays in SMPL model
+files. Anything outside the allowlist (``os.system``, ``builtins.eval``, arbitrary classes)
+raises :class:`UnsafePickleError` naming the file and the refused global.
 
-SMPL model pickles made with chumpy hold ``chumpy.ch.Ch`` objects and scipy sparse
-matrices; both are mapped to small stand-ins that yield plain numpy arrays, so neither
-chumpy nor scipy needs to be installed.
+Reads are bounded: a file larger than ``max_bytes``, or a gzip stream that would expand
+beyond it, is refused before it is expanded in memory (a 1.6 MB gzip can hold gigabytes).
 """
 from __future__ import annotations
 
-import gzip
+import dataclasses
 import io
 import pickle
+import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
-import numpy as np
+
 from omnire.errors import MissingFileError, UserError
 
 
 class PickleReadError(UserError, pickle.UnpicklingError):
-    """A pickle file is damaged or not a pickle (the message names it)."""
+    """A pickle file is damaged, too large, or not a pickle (the message names it)."""
 
 
 class UnsafePickleError(PickleReadError):
@@ -31,72 +32,26 @@ class UnsafePickleError(PickleReadError):
 
 class StandIn:
     """Base of objects that replace a refused class during unpickling; :func:`plain` swaps
-    each for the value of its :meth:`to_plain`. Readers with their own stand-ins (e.g.
-    joblib arrays) subclass it."""
+    each for the value of its :meth:`to_plain`."""
 
     def to_plain(self) -> Any:
         raise NotImplementedError
 
 
-class _ChumpyArray(StandIn):
-    """Stand-in for ``chumpy.ch.Ch``: keeps the ``x`` array from its pickled state."""
+@dataclasses.dataclass(frozen=True)
+class PickleAllowlist:
+    """What a pickle may refer to: globals resolved by import (data classes and their
+    reconstructors only, never a function that reads files or evaluates code), and stand-in
+    classes used in place of others (module, name) -> class."""
 
-    def to_plain(self) -> Any:
-        return self.x
+    globals: frozenset[tuple[str, str]]
+    standins: Mapping[tuple[str, str], type] = dataclasses.field(default_factory=dict)
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        self.x: np.ndarray | None = None
-
-    def __setstate__(self, state: Any) -> None:
-        if isinstance(state, dict):
-            self.x = np.asarray(state.get("x", state.get("_x")))
-        else:
-            self.x = np.asarray(state)
+    def __or__(self, other: "PickleAllowlist") -> "PickleAllowlist":
+        return PickleAllowlist(self.globals | other.globals, {**self.standins, **other.standins})
 
 
-class _SparseMatrix(StandIn):
-    """Stand-in for scipy ``csc_matrix`` / ``csr_matrix``; :meth:`toarray` densifies."""
-
-    def to_plain(self) -> Any:
-        return self.dense()  # type: ignore[attr-defined]
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        self.state: dict = {}
-
-    def __setstate__(self, state: Any) -> None:
-        self.state = dict(state)
-
-    def toarray(self, csc: bool) -> np.ndarray:
-        s = self.state
-        shape = tuple(s["_shape"]) if "_shape" in s else tuple(s["shape"])
-        data, indices, indptr = (np.asarray(s[k]) for k in ("data", "indices", "indptr"))
-        out = np.zeros(shape, dtype=data.dtype)
-        major = shape[1] if csc else shape[0]
-        for j in range(major):
-            rows = indices[indptr[j] : indptr[j + 1]]
-            vals = data[indptr[j] : indptr[j + 1]]
-            if csc:
-                out[rows, j] = vals
-            else:
-                out[j, rows] = vals
-        return out
-
-
-class _CscMatrix(_SparseMatrix):
-    def dense(self) -> np.ndarray:
-        return self.toarray(csc=True)
-
-
-class _CsrMatrix(_SparseMatrix):
-    def dense(self) -> np.ndarray:
-        return self.toarray(csc=False)
-
-
-
-
-# Globals resolved through the normal import machinery once allowed (data classes and their
-# reconstructors only; no function that reads files or evaluates expressions).
-_ALLOWED_IMPORTS = {
+NUMPY_DATA = PickleAllowlist(frozenset({
     ("numpy.core.multiarray", "_reconstruct"),
     ("numpy._core.multiarray", "_reconstruct"),
     ("numpy.core.multiarray", "scalar"),
@@ -111,49 +66,28 @@ _ALLOWED_IMPORTS = {
     ("builtins", "complex"),
     ("collections", "OrderedDict"),
     ("_codecs", "encode"),  # protocol-2 pickles store bytes as codecs.encode(str, "latin1")
-    ("pandas", "DataFrame"),
-    ("pandas", "Index"),
-    ("pandas", "RangeIndex"),
-    ("pandas", "Series"),
-    ("pandas._libs.internals", "_unpickle_block"),
-    ("pandas.core.frame", "DataFrame"),
-    ("pandas.core.series", "Series"),
-    ("pandas.core.indexes.base", "Index"),
-    ("pandas.core.indexes.base", "_new_Index"),
-    ("pandas.core.indexes.range", "RangeIndex"),
-    ("pandas.core.internals.managers", "BlockManager"),
-    ("pandas.core.internals.managers", "SingleBlockManager"),
-    ("pandas.core.internals.blocks", "new_block"),
-    ("torch._utils", "_rebuild_tensor_v2"),
-    ("torch", "FloatStorage"),
-    ("torch", "LongStorage"),
-    ("torch", "BoolStorage"),
-    ("torch", "DoubleStorage"),
-}
+}))
+"""numpy arrays, scalars and plain containers: what every reader accepts."""
 
-_STANDINS = {
-    ("chumpy.ch", "Ch"): _ChumpyArray,
-    ("chumpy.reordering", "Select"): _ChumpyArray,
-    ("scipy.sparse.csc", "csc_matrix"): _CscMatrix,
-    ("scipy.sparse._csc", "csc_matrix"): _CscMatrix,
-    ("scipy.sparse.csr", "csr_matrix"): _CsrMatrix,
-    ("scipy.sparse._csr", "csr_matrix"): _CsrMatrix,
-}
+DEFAULT_MAX_BYTES = 256 * 2**20
 
 
 class RestrictedUnpickler(pickle.Unpickler):
-    def __init__(self, file: Any, source: str) -> None:
+    """An unpickler that resolves only the globals of ``allow`` (stand-ins first)."""
+
+    def __init__(self, file: Any, source: str, allow: PickleAllowlist = NUMPY_DATA) -> None:
         super().__init__(file, encoding="latin1")
         self.source = source
+        self.allow = allow
 
     def find_class(self, module: str, name: str) -> Any:
-        if (module, name) in _STANDINS:
-            return _STANDINS[(module, name)]
-        if (module, name) in _ALLOWED_IMPORTS:
+        if (module, name) in self.allow.standins:
+            return self.allow.standins[(module, name)]
+        if (module, name) in self.allow.globals:
             return super().find_class(module, name)
         raise UnsafePickleError(
-            f"{self.source}: refusing to load global {module}.{name} (not a known data type); "
-            "the file may be corrupt or malicious"
+            f"{self.source}: refused as unsafe: it refers to {module}.{name}, which is not a data type "
+            "this reader accepts; the file may be corrupt or malicious"
         )
 
 
@@ -170,23 +104,53 @@ def plain(obj: Any) -> Any:
     return obj
 
 
-def load(path: str | Path) -> Any:
-    """Load a (possibly gzip-compressed) pickle through the allowlist.
-
-    Raises:
-        FileNotFoundError: the file does not exist (message names it).
-        UnsafePickleError: the pickle refers to a global outside the allowlist.
-        pickle.UnpicklingError: the file is not a valid pickle (message names it).
-    """
+def read_capped(path: Path, max_bytes: int) -> bytes:
+    """The bytes of ``path``, gunzipped when it is gzip-compressed, refusing (before
+    expanding it) a file whose content would exceed ``max_bytes``."""
     path = Path(path)
     if not path.is_file():
         raise MissingFileError(f"{path}: no such file")
+    if path.stat().st_size > max_bytes:
+        raise PickleReadError(f"{path}: {path.stat().st_size} bytes, more than this reader accepts ({max_bytes})")
     raw = path.read_bytes()
-    if raw[:2] == b"\x1f\x8b":
-        raw = gzip.decompress(raw)
+    if raw[:2] != b"\x1f\x8b":
+        return raw
+    inflater = zlib.decompressobj(16 + zlib.MAX_WBITS)
+    out, total = [], 0
+    data = raw
     try:
-        return plain(RestrictedUnpickler(io.BytesIO(raw), str(path)).load())
-    except UnsafePickleError:
+        while data:
+            chunk = inflater.decompress(data, 1 << 20)  # at most 1 MB per call
+            total += len(chunk)
+            if total > max_bytes:
+                raise PickleReadError(f"{path}: expands to more than {max_bytes} bytes; refused (this format "
+                                      "holds far less: the file is corrupt or a decompression bomb)")
+            out.append(chunk)
+            data = inflater.unconsumed_tail
+            if inflater.eof:
+                break
+    except zlib.error as exc:
+        raise PickleReadError(f"{path}: damaged gzip data ({exc})") from None
+    if not inflater.eof:
+        raise PickleReadError(f"{path}: truncated gzip data")
+    return b"".join(out)
+
+
+def load(path: str | Path, allow: PickleAllowlist = NUMPY_DATA, max_bytes: int = DEFAULT_MAX_BYTES) -> Any:
+    """Load a (possibly gzip-compressed) pickle through the allowlist ``allow``, reading at
+    most ``max_bytes`` (after decompression).
+
+    Raises:
+        MissingFileError: the file does not exist (message names it).
+        UnsafePickleError: the pickle refers to a global outside the allowlist.
+        PickleReadError: the file is too large, damaged, or not a pickle.
+    """
+    path = Path(path)
+    raw = read_capped(path, max_bytes)
+    try:
+        return plain(RestrictedUnpickler(io.BytesIO(raw), str(path), allow).load())
+    except PickleReadError:
         raise
     except Exception as exc:
         raise PickleReadError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc
+

@@ -45,6 +45,7 @@ import numpy as np
 
 from omnire.api import (
     ActorTrack,
+    axis_rotation,
     CameraSequence,
     ConfigError,
     Dataparser,
@@ -176,23 +177,14 @@ def oxts_poses(oxts: np.ndarray) -> np.ndarray:
     out[:, 0, 3] = scale * lon * np.pi * EARTH_RADIUS / 180.0
     out[:, 1, 3] = scale * EARTH_RADIUS * np.log(np.tan((90.0 + lat) * np.pi / 360.0))
     out[:, 2, 3] = alt
-    out[:, :3, :3] = _rot(2, yaw) @ _rot(1, pitch) @ _rot(0, roll)
+    out[:, :3, :3] = axis_rotation(2, yaw) @ axis_rotation(1, pitch) @ axis_rotation(0, roll)
     return out
-
-
-def _rot(axis: int, angle: np.ndarray) -> np.ndarray:
-    """(N,) angles -> (N, 3, 3) rotations about coordinate axis 0 (x), 1 (y) or 2 (z)."""
-    c, s = np.cos(angle), np.sin(angle)
-    R = np.tile(np.eye(3), (len(angle), 1, 1))
-    i, j = [(1, 2), (2, 0), (0, 1)][axis]
-    R[:, i, i], R[:, i, j], R[:, j, i], R[:, j, j] = c, -s, s, c
-    return R
 
 
 def label_box(h: float, w: float, l: float, x: float, y: float, z: float, ry: float) -> np.ndarray:
     """One label row's box -> (4, 4) box-to-rectified-camera-0 with the origin at the box
     centre, x along the heading, z up."""
-    R = _rot(1, np.array([ry]))[0]  # object -> camera: rotation about the camera y axis
+    R = axis_rotation(1, np.array([ry]))[0]  # object -> camera: rotation about the camera y axis
     T = np.eye(4)
     T[:3, :3] = R @ _BOX_AXES
     T[:3, 3] = (x, y - h / 2.0, z)  # bottom centre -> centre (camera y points down)

@@ -34,7 +34,8 @@ import numpy as np
 
 from omnire.api import atomic_write_bytes, atomic_write_text
 from omnire_kitti.dataparser import EARTH_RADIUS
-from omnire_kitti.source import SyntheticSource, rigid, rot_axis
+from omnire.api import axis_rotation as rot_axis
+from omnire_synthetic.source import SyntheticSource, rigid
 
 SPLIT, SEQUENCE = "training", "0000"
 FIRST_LAT, FIRST_LON, FIRST_ALT = 49.011212804408, 8.4228850417969, 112.83492279053

@@ -375,7 +375,6 @@ class NuScenesDataparser(Dataparser):
         groups: dict[str, list[dict]] = {}
         for a in anns:
             groups.setdefault(a["instance_token"], []).append(a)
-        F = len(frame_us)
         tracks = []
         for inst_token, rows in sorted(groups.items()):
             inst = lookup(instances, inst_token, "instance", tables,

@@ -49,7 +49,7 @@ from omnire.data.scene import (
     holdout_split,
 )
 from omnire.io import safe_pickle
-from omnire.api import MissingFileError
+from omnire.api import MissingFileError, quat_to_rotmat, rot_z
 
 CAMERAS = (
     "front_camera",
@@ -60,6 +60,14 @@ CAMERAS = (
     "back_camera",
 )
 """The six PandaSet cameras (PandaSet camera ids 0..5 in this order)."""
+
+EGO_MASKS = {
+    name: path for name in CAMERAS
+    if (path := Path(__file__).resolve().parent / "assets" / "ego_masks" / f"{name}.png").is_file()
+}
+"""Masks of the recording car's own body per camera (same car, so the same for every log):
+the back camera sees the trunk in the lower sixth of its image. Estimated from log 002 with
+omnire.egomask and checked by eye."""
 
 LIDAR_SENSORS = {0: "Pandar64 (360-degree)", 1: "PandarGT (forward-facing)"}
 """PandaSet LiDAR sensor ids (column ``d`` of the point clouds, ``cuboids.sensor_id``)."""
@@ -108,30 +116,6 @@ def category_of(label: str) -> str:
 
 
 # ----------------------------------------------------------------------------- geometry
-def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) wxyz quaternions (normalised here) -> (..., 3, 3) rotation matrices."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
-def rot_z(angle: np.ndarray) -> np.ndarray:
-    """(...,) angles in radians -> (..., 3, 3) rotations about +z."""
-    c, s = np.cos(angle), np.sin(angle)
-    zero, one = np.zeros_like(c), np.ones_like(c)
-    return np.stack(
-        [np.stack([c, -s, zero], -1), np.stack([s, c, zero], -1), np.stack([zero, zero, one], -1)], -2
-    )
-
-
 def world_change(lidar_to_world: np.ndarray) -> np.ndarray:
     """(4, 4) PandaSet-world -> omnire-world transform anchored at one LiDAR pose.
 
@@ -185,11 +169,37 @@ def _read_json_list(path: Path, length: int, what: str) -> list[Any]:
     return data
 
 
+PANDAS_FRAMES = safe_pickle.NUMPY_DATA | safe_pickle.PickleAllowlist(frozenset({
+    ("pandas", "DataFrame"),
+    ("pandas", "Index"),
+    ("pandas", "RangeIndex"),
+    ("pandas", "Series"),
+    ("pandas._libs.internals", "_unpickle_block"),
+    ("pandas.core.frame", "DataFrame"),
+    ("pandas.core.series", "Series"),
+    ("pandas.core.indexes.base", "Index"),
+    ("pandas.core.indexes.base", "_new_Index"),
+    ("pandas.core.indexes.range", "RangeIndex"),
+    ("pandas.core.internals.managers", "BlockManager"),
+    ("pandas.core.internals.managers", "SingleBlockManager"),
+    ("pandas.core.internals.blocks", "new_block"),
+}))
+"""What a PandaSet ``*.pkl.gz`` may hold: a pandas DataFrame of numpy columns."""
+FRAME_TABLE_MAX_BYTES = 256 * 2**20
+"""A PandaSet frame table unpickled: LiDAR sweeps are ~10 MB (170k points x 6 columns), cuboid
+tables far less; anything over 256 MB is not a PandaSet frame."""
+
+
+def load_frame_table(path: Path) -> Any:
+    """A PandaSet ``*.pkl.gz`` through the restricted unpickler (pandas DataFrames only)."""
+    return safe_pickle.load(path, PANDAS_FRAMES, FRAME_TABLE_MAX_BYTES)
+
+
 def _read_frame_table(path: Path, columns: Sequence[str], what: str) -> pd.DataFrame:
     """Load a PandaSet ``*.pkl.gz`` through the restricted unpickler; check the columns."""
     expected = f"a gzip-compressed pickle of a pandas DataFrame with columns {', '.join(columns)}"
     try:
-        table = safe_pickle.load(path)
+        table = load_frame_table(path)
     except FileNotFoundError:
         raise MissingFileError(f"{path}: missing {what}") from None
     except (pickle.UnpicklingError, EOFError, OSError, zlib.error) as exc:
@@ -454,6 +464,7 @@ class PandasetDataparser(Dataparser):
             intrinsics=K,
             cam_to_world=world[None] @ poses[frames],  # (F, 4, 4) OpenCV camera-to-world
             image_paths=paths,
+            ego_mask_path=EGO_MASKS.get(name),
             timestamps=np.asarray(times, dtype=np.float64)[frames],
         )
 

@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 from omnire.data import SceneDataError
-from omnire.io import safe_pickle
+from omnire_pandaset.dataparser import load_frame_table
 from omnire_pandaset import (
     ATTRIBUTION,
     CAMERAS,
@@ -80,7 +80,7 @@ def test_scale_and_options():
     k = json.loads((DEMO / "camera/front_left_camera/intrinsics.json").read_text())
     assert np.allclose(cam.intrinsics[[0, 1, 0, 1], [0, 1, 2, 2]], [k["fx"] / 2, k["fy"] / 2, k["cx"] / 2, k["cy"] / 2])
     assert s.num_frames == 7 and list(s.source_frames) == list(range(45, 52))
-    raw = safe_pickle.load(DEMO / "lidar/05.pkl.gz")
+    raw = load_frame_table(DEMO / "lidar/05.pkl.gz")
     assert len(s.lidar.points[0]) == min(1000, int((raw["d"] == 1).sum()))
     again = parse(DEMO, cameras=("front_camera",), start_frame=5, end_frame=6, max_lidar_points_per_frame=1000, lidar_sensors=(1,))
     assert np.array_equal(again.lidar.points[0], s.lidar.points[0])  # fixed seed
@@ -131,7 +131,7 @@ def test_world_origin_at_first_ego_pose(demo):
 def test_track_ids_unique_per_frame(demo):
     ids = [t.track_id for t in demo.tracks]
     assert len(ids) == len(set(ids))
-    tables = [safe_pickle.load(DEMO / f"annotations/cuboids/{i:02d}.pkl.gz") for i in range(demo.num_frames)]
+    tables = [load_frame_table(DEMO / f"annotations/cuboids/{i:02d}.pkl.gz") for i in range(demo.num_frames)]
     for df in deduplicate_cuboids(tables):
         assert not df["track_id"].duplicated().any()
     for t in demo.tracks:
@@ -139,7 +139,7 @@ def test_track_ids_unique_per_frame(demo):
 
 
 def test_dedup_two_sensor_case_from_real_rows():
-    df = safe_pickle.load(DEMO / "annotations/cuboids/00.pkl.gz")
+    df = load_frame_table(DEMO / "annotations/cuboids/00.pkl.gz")
     gt_rows = df[(df["cuboids.sensor_id"] == 1) & df["cuboids.sibling_id"].isin(df["uuid"])]
     gt = gt_rows.iloc[[0]]
     p64 = df[df["uuid"] == gt["cuboids.sibling_id"].iloc[0]]
@@ -273,7 +273,7 @@ def test_error_frame_range(start, end):
     [
         (b"this is not a pickle", "unreadable LiDAR point cloud"),
         (gzip.compress(b"\x80\x04garbage"), "unreadable LiDAR point cloud"),
-        (gzip.compress(pickle.dumps(print)), "refusing to load global builtins.print"),
+        (gzip.compress(pickle.dumps(print)), "refused as unsafe: it refers to builtins.print"),
         (gzip.compress(pickle.dumps({"x": [1.0]})), "holds a dict, expected a gzip-compressed pickle of a pandas DataFrame"),
     ],
 )
@@ -295,7 +295,7 @@ def test_error_truncated_cuboid_pickle(tmp_path):
 
 def test_error_cuboids_missing_columns(tmp_path):
     root = small_copy(tmp_path)
-    df = safe_pickle.load(root / "annotations/cuboids/00.pkl.gz").drop(columns=["yaw"])
+    df = load_frame_table(root / "annotations/cuboids/00.pkl.gz").drop(columns=["yaw"])
     df.index = pd.Index(np.arange(len(df)), dtype=np.int64)  # pandas>=3 pickles RangeIndex as a global the allowlist lacks
     (root / "annotations/cuboids/00.pkl.gz").write_bytes(gzip.compress(pickle.dumps(df)))
     with pytest.raises(SceneDataError, match=r"lacks columns \['yaw'\]"):

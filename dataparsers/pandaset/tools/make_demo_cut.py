@@ -34,7 +34,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pandas as pd
 
-from omnire.io import safe_pickle
+from omnire_pandaset.dataparser import load_frame_table
 
 REPO = Path(__file__).resolve().parents[3]
 CAMERAS = ("front_camera", "front_left_camera", "front_right_camera")
@@ -162,7 +162,7 @@ def main() -> None:
         path = src / "lidar" / f"{f:02d}.pkl.gz"
         if not path.is_file():
             continue  # keep the source's gap
-        table = thin_lidar(safe_pickle.load(path), args.lidar_points, seed=f)
+        table = thin_lidar(load_frame_table(path), args.lidar_points, seed=f)
         write_pickle_gz(ldir / f"{i:02d}.pkl.gz", table)
         counts.append(len(table))
 

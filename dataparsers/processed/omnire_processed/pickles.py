@@ -17,17 +17,14 @@ clear message; gzip-compressed pickles are accepted like in ``safe_pickle.load``
 """
 from __future__ import annotations
 
-import gzip
 import io
-import pickle
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from omnire.io import safe_pickle
-from omnire.io.safe_pickle import RestrictedUnpickler, StandIn, UnsafePickleError
-from omnire.api import MissingFileError
+from omnire.io.safe_pickle import NUMPY_DATA, PickleAllowlist, PickleReadError, RestrictedUnpickler, StandIn, UnsafePickleError
 
 _JOBLIB_WRAPPER = ("joblib.numpy_pickle", "NumpyArrayWrapper")
 _TORCH_STORAGE = ("torch.storage", "_load_from_bytes")
@@ -53,12 +50,12 @@ class _ArrayFromStream(StandIn):
         if state.get("numpy_array_alignment_bytes") is not None:
             pad = self.stream.read(1)
             if len(pad) != 1:
-                raise pickle.UnpicklingError(f"{self.source}: truncated array padding")
+                raise PickleReadError(f"{self.source}: truncated array padding")
             self.stream.read(int.from_bytes(pad, "little"))
         count = int(np.prod(shape)) if shape else 1
         raw = self.stream.read(count * dtype.itemsize)
         if len(raw) != count * dtype.itemsize:
-            raise pickle.UnpicklingError(f"{self.source}: truncated array data ({len(raw)} bytes)")
+            raise PickleReadError(f"{self.source}: truncated array data ({len(raw)} bytes)")
         arr = np.frombuffer(raw, dtype=dtype).copy()
         if state.get("order", "C") == "F":
             arr = arr.reshape(shape[::-1]).T
@@ -73,11 +70,23 @@ def _load_storage(data: bytes) -> Any:
     return torch.load(io.BytesIO(data), weights_only=True)
 
 
+SMPL_SEQUENCES = NUMPY_DATA | PickleAllowlist(frozenset({
+    ("torch._utils", "_rebuild_tensor_v2"),
+    ("torch", "FloatStorage"),
+    ("torch", "LongStorage"),
+    ("torch", "BoolStorage"),
+    ("torch", "DoubleStorage"),
+}))
+"""What ``humanpose/smpl.pkl`` may hold besides joblib records: numpy data and torch tensors."""
+SMPL_SEQUENCES_MAX_BYTES = 1 << 30
+"""Poses of every pedestrian of a log: ~2 KB per person and frame; 1 GB is far beyond any log."""
+
+
 class SmplPickleUnpickler(RestrictedUnpickler):
     """The restricted unpickler plus joblib array records and torch storages (see module doc)."""
 
     def __init__(self, file: io.BytesIO, source: str) -> None:
-        super().__init__(file, source)
+        super().__init__(file, source, SMPL_SEQUENCES)
         # A class bound to this stream, so wrappers read their bytes where they stand.
         self._wrapper = type("_BoundArrayFromStream", (_ArrayFromStream,), {"stream": file, "source": source})
 
@@ -93,20 +102,16 @@ def load_smpl_pickle(path: str | Path) -> Any:
     """Load a (joblib or plain) pickle through the restricted unpickler; arrays come back
     as numpy (torch tensors stay tensors; callers convert)."""
     path = Path(path)
-    if not path.is_file():
-        raise MissingFileError(f"{path}: no such file")
-    raw = path.read_bytes()
-    if raw[:2] == b"\x1f\x8b":
-        raw = gzip.decompress(raw)
-    elif raw[:2] in (b"ZF", b"\x78\x9c", b"\x78\x01", b"\x78\xda") or raw[:3] == b"BZh" or raw[:4] == b"\x28\xb5\x2f\xfd":
-        raise pickle.UnpicklingError(
+    raw = safe_pickle.read_capped(path, SMPL_SEQUENCES_MAX_BYTES)
+    if raw[:2] in (b"ZF", b"\x78\x9c", b"\x78\x01", b"\x78\xda") or raw[:3] == b"BZh" or raw[:4] == b"\x28\xb5\x2f\xfd":
+        raise PickleReadError(
             f"{path}: compressed joblib file; re-save it uncompressed (joblib.dump(obj, path, compress=0))"
         )
     stream = io.BytesIO(raw)
     try:
         obj = SmplPickleUnpickler(stream, str(path)).load()
-    except UnsafePickleError:
+    except PickleReadError:
         raise
     except Exception as exc:
-        raise pickle.UnpicklingError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc
+        raise PickleReadError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc
     return safe_pickle.plain(obj)

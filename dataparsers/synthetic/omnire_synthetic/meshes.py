@@ -6,6 +6,8 @@ from typing import Sequence
 
 import numpy as np
 
+from omnire.api import axis_rotation
+
 
 @dataclasses.dataclass
 class Mesh:
@@ -138,15 +140,10 @@ def rigid(R: np.ndarray | None = None, t: Sequence[float] = (0.0, 0.0, 0.0)) -> 
 
 
 def rot_z(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def rot_y(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    """(3, 3) rotation by ``a`` radians about z (see :func:`omnire.geometry.axis_rotation`)."""
+    return axis_rotation(2, float(a))
 
 
 def rot_x(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    """(3, 3) rotation by ``a`` radians about x."""
+    return axis_rotation(0, float(a))

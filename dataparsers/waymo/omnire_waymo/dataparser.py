@@ -42,6 +42,7 @@ import numpy as np
 
 from omnire.api import (
     MissingFileError,
+    rot_z,
     ActorTrack,
     CameraSequence,
     ConfigError,
@@ -117,11 +118,6 @@ def transform(msg, where: str) -> np.ndarray:
     if vals.size != 16 or not np.isfinite(vals).all():
         raise SceneDataError(f"{where}: expected a 4x4 row-major transform (16 finite numbers), got {vals.size} values")
     return vals.reshape(4, 4)
-
-
-def rot_z(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def box_to_vehicle(box) -> np.ndarray:

@@ -133,6 +133,63 @@ def _dense(x: object, name: str, path: Path) -> np.ndarray:
     return arr
 
 
+class _ChumpyArray(safe_pickle.StandIn):
+    """Stand-in for ``chumpy.ch.Ch``: keeps the ``x`` array from its pickled state."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        self.x: np.ndarray | None = None
+
+    def to_plain(self):
+        return self.x
+
+    def __setstate__(self, state) -> None:
+        self.x = np.asarray(state.get("x", state.get("_x"))) if isinstance(state, dict) else np.asarray(state)
+
+
+class _SparseMatrix(safe_pickle.StandIn):
+    """Stand-in for scipy ``csc_matrix`` / ``csr_matrix``: densified from its pickled state."""
+
+    compressed_columns = True
+
+    def __init__(self, *args, **kwargs) -> None:
+        self.state: dict = {}
+
+    def __setstate__(self, state) -> None:
+        self.state = dict(state)
+
+    def to_plain(self) -> np.ndarray:
+        s = self.state
+        shape = tuple(s["_shape"]) if "_shape" in s else tuple(s["shape"])
+        data, indices, indptr = (np.asarray(s[k]) for k in ("data", "indices", "indptr"))
+        out = np.zeros(shape, dtype=data.dtype)
+        major = shape[1] if self.compressed_columns else shape[0]
+        for j in range(major):
+            rows, vals = indices[indptr[j]:indptr[j + 1]], data[indptr[j]:indptr[j + 1]]
+            if self.compressed_columns:
+                out[rows, j] = vals
+            else:
+                out[j, rows] = vals
+        return out
+
+
+class _CsrMatrix(_SparseMatrix):
+    compressed_columns = False
+
+
+SMPL_PICKLE = safe_pickle.NUMPY_DATA | safe_pickle.PickleAllowlist(frozenset(), {
+    ("chumpy.ch", "Ch"): _ChumpyArray,
+    ("chumpy.reordering", "Select"): _ChumpyArray,
+    ("scipy.sparse.csc", "csc_matrix"): _SparseMatrix,
+    ("scipy.sparse._csc", "csc_matrix"): _SparseMatrix,
+    ("scipy.sparse.csr", "csr_matrix"): _CsrMatrix,
+    ("scipy.sparse._csr", "csr_matrix"): _CsrMatrix,
+})
+"""What an SMPL model pickle may hold: numpy data, chumpy arrays and scipy sparse matrices
+(both replaced by numpy, so neither package is needed)."""
+SMPL_PICKLE_MAX_BYTES = 1 << 30
+"""SMPL model files are ~40-250 MB unpickled; larger content is refused."""
+
+
 def load_smpl_pickle(path: str | Path) -> BodyTemplate:
     """Load a user-given SMPL model pickle (``v_template``, ``weights``, ``J_regressor``,
     ``kintree_table``, ``shapedirs``, ``posedirs``, ``f``) through the restricted unpickler.
@@ -141,7 +198,7 @@ def load_smpl_pickle(path: str | Path) -> BodyTemplate:
     stand-ins, so neither package is needed.
     """
     path = Path(path)
-    data = safe_pickle.load(path)
+    data = safe_pickle.load(path, SMPL_PICKLE, SMPL_PICKLE_MAX_BYTES)
     if not isinstance(data, dict):
         raise BodyTemplateError(f"{path}: expected a dict, got {type(data).__name__}")
     verts = _dense(data.get("v_template"), "v_template", path).astype(np.float64)  # (V, 3)

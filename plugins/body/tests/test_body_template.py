@@ -1,6 +1,7 @@
 """Body template loading (shipped Anny-derived npz, SMPL pickles) and numpy LBS."""
 from __future__ import annotations
 
+import io
 import pickle
 
 import numpy as np
@@ -8,7 +9,8 @@ import pytest
 
 from omnire.geometry import axis_angle_to_rotmat
 from omnire_body import SMPL_PARENTS, BodyTemplateError, forward_kinematics, lbs, load_anny_template, load_smpl_pickle, load_template
-from omnire_body.template import ANNY_TEMPLATE
+from omnire_body.template import ANNY_TEMPLATE, SMPL_PICKLE
+from omnire.io import safe_pickle
 from omnire.io.safe_pickle import UnsafePickleError
 
 I3 = np.eye(3)
@@ -140,3 +142,35 @@ def test_bad_templates_are_refused(tmp_path):
         load_smpl_pickle(evil)
     with pytest.raises(FileNotFoundError, match="nope.npz"):
         load_anny_template(tmp_path / "nope.npz")
+
+
+def test_chumpy_and_sparse_standins(tmp_path):
+    """SMPL pickles made with chumpy/scipy: build such a pickle by hand (no chumpy needed)."""
+    class Ch:  # stands for chumpy.ch.Ch in the stream
+        pass
+
+    Ch.__module__, Ch.__qualname__ = "chumpy.ch", "Ch"
+    obj = Ch.__new__(Ch)
+    obj.__dict__ = {"x": np.ones((2, 3))}
+    buf = io.BytesIO()
+
+    class P(pickle.Pickler):
+        def reducer_override(self, o):
+            if isinstance(o, Ch):
+                return (Ch, (), o.__dict__)
+            return NotImplemented
+
+    import sys
+    import types
+
+    fake, parent = types.ModuleType("chumpy.ch"), types.ModuleType("chumpy")
+    fake.Ch, parent.ch = Ch, fake
+    sys.modules.update({"chumpy": parent, "chumpy.ch": fake})
+    try:
+        P(buf, protocol=2).dump({"shapedirs": obj})
+    finally:
+        del sys.modules["chumpy.ch"], sys.modules["chumpy"]
+    p = tmp_path / "smpl.pkl"
+    p.write_bytes(buf.getvalue())
+    out = safe_pickle.load(p, SMPL_PICKLE)
+    assert isinstance(out["shapedirs"], np.ndarray) and out["shapedirs"].shape == (2, 3)

@@ -41,7 +41,6 @@ from typing import Optional
 
 import numpy as np
 import torch
-from torch import nn
 
 from omnire.api import (
     BackgroundConfig,

@@ -1,4 +1,4 @@
-"""A synthetic scene (``omnire synth``, processed layout) as the scene writer sees it: the
+"""A synthetic scene (``omnire synth``, processed layout) as scene writers see it: the
 processed reader's :class:`SceneData` plus the generator's ground truth, all in the
 generator world (z up, metres)."""
 from __future__ import annotations
@@ -126,12 +126,3 @@ def rigid(R: Optional[np.ndarray] = None, t=(0.0, 0.0, 0.0)) -> np.ndarray:
         M[:3, :3] = R
     M[:3, 3] = t
     return M
-
-
-def rot_axis(axis: int, angle: float) -> np.ndarray:
-    """(3, 3) rotation by ``angle`` radians about coordinate axis 0 (x), 1 (y) or 2 (z)."""
-    c, s = np.cos(angle), np.sin(angle)
-    i, j = [(1, 2), (2, 0), (0, 1)][axis]
-    R = np.eye(3)
-    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
-    return R
