@@ -14,7 +14,7 @@ SMALL = "--method.nodes.background.max-lidar-points 2000 --method.nodes.backgrou
 ENV = dict(os.environ, COLUMNS="200", OMP_NUM_THREADS="1")
 
 
-def batch(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+def batch(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "omnire.cli", "batch", "--local-cpus", "2", *args],
                           capture_output=True, text=True, timeout=timeout, env=ENV)
 
@@ -85,7 +85,7 @@ args = "--method.no-such-flag 1"
     assert json.loads((out / "results.json").read_text())["results"] == saved["results"]
 
 
-def _wait_for_checkpoints(run: Path, proc: subprocess.Popen, above: int, deadline_s: float = 150) -> list[int]:
+def _wait_for_checkpoints(run: Path, proc: subprocess.Popen, above: int, deadline_s: float = 300) -> list[int]:
     end = time.monotonic() + deadline_s
     while time.monotonic() < end:
         steps = checkpoint_steps(run)
@@ -130,7 +130,7 @@ def test_killed_batch_resumes_from_the_newest_checkpoint(tmp_path):
     newest = max(before)
     assert newest > first[-1]
     started = time.time_ns()
-    last = batch(*args, timeout=300)
+    last = batch(*args, timeout=600)
     text = last.stdout + last.stderr
     assert last.returncode == 0, text
     result = json.loads((out / "results.json").read_text())["results"][0]
