@@ -11,6 +11,7 @@ import ctypes
 import fcntl
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -32,6 +33,9 @@ LOCK_WAIT_S = 120.0
 """How long a job waits for a previous attempt of itself (e.g. an orphan still writing its last
 checkpoint after its batch was killed) to let go of the run directory."""
 TAIL_LINES = 40
+INTERRUPTED_RE = re.compile(r"\b(SIGTERM|SIGINT|SIGHUP): stopped at step \d+; checkpoint")
+"""How the trainer reports a signal it stopped on (it exits 2, as for any user error): the
+job is resumable, not failed."""
 
 
 try:  # resolved here: the child of a threaded worker must not load libraries between fork and exec
@@ -278,7 +282,8 @@ def _execute_locked(job: Job, result: dict, done, say, redo_changed: bool, stop_
             return done(status="ok", exit_code=0, **res)
         return done(exit_code=0, error=f"omnire train exited 0 but {job.run_dir}/metrics.jsonl has no final "
                                        f"evaluation; log {job.log_path}:\n{tail}")
-    if stop_reason == "stopped by the batch" or (stop_reason is None and (rc < 0 or rc in (130, 143))):
+    if stop_reason == "stopped by the batch" or (stop_reason is None and (rc < 0 or rc in (130, 143)
+                                                                          or INTERRUPTED_RE.search(tail))):
         why = stop_reason or (f"killed by signal {-rc}" if rc < 0 else f"interrupted (exit {rc})")
         return done(status="interrupted", exit_code=rc, error=f"{why}; a rerun resumes it from its newest checkpoint")
     why = stop_reason or f"omnire train exited with {rc}"

@@ -97,11 +97,24 @@ def _wait_for_checkpoints(run: Path, proc: subprocess.Popen, above: int, deadlin
     raise AssertionError(f"no checkpoint past step {above} in {run} after {deadline_s} s")
 
 
+def _trainer_pid(run: Path) -> int:
+    """The pid of the ``omnire train`` process writing ``run`` (started by this test's batch)."""
+    needle = f"--trainer.output-dir\x00{run.parent}\x00--trainer.run-name\x00{run.name}\x00".encode()
+    for proc in Path("/proc").iterdir():
+        try:
+            if proc.name.isdigit() and needle in (proc / "cmdline").read_bytes():
+                return int(proc.name)
+        except OSError:
+            continue
+    raise AssertionError(f"no trainer process for {run}")
+
+
 def test_killed_batch_resumes_from_the_newest_checkpoint(tmp_path):
-    """SIGTERM (the batch asks its jobs to stop), then SIGKILL of the batch process mid-training:
-    each rerun continues the job from its newest checkpoint instead of starting again."""
+    """SIGTERM to the batch (it asks its jobs to stop), SIGTERM to the job's trainer, then SIGKILL
+    of the batch process, each mid-training: every rerun continues the job from its newest
+    checkpoint instead of starting again."""
     out = tmp_path / "out"
-    args = ["--scenes", "tiny=synth:empty --tiny", "--methods", "3dgs", "--steps", "1000", "--checkpoints", "1",
+    args = ["--scenes", "tiny=synth:empty --tiny", "--methods", "3dgs", "--steps", "600", "--checkpoints", "1",
             "--checkpoint-every", "50", f"--method-args={SMALL}", "--output", str(out)]
     run = out / "runs" / "tiny" / "3dgs-seed0"
     cmd = [sys.executable, "-m", "omnire.cli", "batch", "--local-cpus", "2", *args]
@@ -115,11 +128,22 @@ def test_killed_batch_resumes_from_the_newest_checkpoint(tmp_path):
     record = json.loads((out / "jobs" / "tiny" / "3dgs-seed0.json").read_text())
     assert record["status"] == "interrupted"
     first = checkpoint_steps(run)
-    assert 0 < first[-1] < 1000
+    assert 0 < first[-1] < 600
 
-    # Second attempt resumes; kill the batch process outright once it has gone further.
+    # Second attempt resumes; SIGTERM its trainer directly (as an OOM killer or an admin
+    # would): the job is interrupted, not failed, and the batch goes on to its end.
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
     _wait_for_checkpoints(run, proc, first[-1])
+    os.kill(_trainer_pid(run), signal.SIGTERM)
+    text = proc.communicate(timeout=120)[0]
+    assert "1 to run (1 resume from a checkpoint)" in text, text
+    assert proc.returncode == 1 and "tiny/3dgs-seed0: INTERRUPTED" in text, text
+    second = checkpoint_steps(run)
+    assert second[-1] > first[-1]
+
+    # Third attempt resumes; kill the batch process outright once it has gone further.
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    _wait_for_checkpoints(run, proc, second[-1])
     proc.kill()
     text = proc.communicate(timeout=30)[0]
     assert "1 to run (1 resume from a checkpoint)" in text, text
@@ -134,7 +158,7 @@ def test_killed_batch_resumes_from_the_newest_checkpoint(tmp_path):
     text = last.stdout + last.stderr
     assert last.returncode == 0, text
     result = json.loads((out / "results.json").read_text())["results"][0]
-    assert result["status"] == "ok" and result["steps_done"] == 1000
+    assert result["status"] == "ok" and result["steps_done"] == 600
     assert result["resumed_from"] is not None and result["resumed_from"] >= newest, (result["resumed_from"], newest)
     resumed = result["resumed_from"]
     for step, mtime in before.items():  # what came before the resume point was not redone
@@ -144,7 +168,8 @@ def test_killed_batch_resumes_from_the_newest_checkpoint(tmp_path):
                for s in checkpoint_steps(run) if s > resumed)
     log = (out / "logs" / "tiny" / "3dgs-seed0.log").read_text()
     headers = [line for line in log.splitlines() if line.startswith("=== ")]
-    assert len(headers) == 3 and "(new run)" in headers[0]
-    assert f"(resuming from step {first[-1]})" in headers[1] and f"(resuming from step {resumed})" in headers[2]
+    assert len(headers) == 4 and "(new run)" in headers[0]
+    assert f"(resuming from step {first[-1]})" in headers[1] and f"(resuming from step {second[-1]})" in headers[2]
+    assert f"(resuming from step {resumed})" in headers[3]
     steps = [r["step"] for r in read_metrics(run) if "its" in r]
-    assert steps == sorted(set(steps)) and steps[-1] == 1000 and steps[0] <= 50
+    assert steps == sorted(set(steps)) and steps[-1] == 600 and steps[0] <= 50
