@@ -1,0 +1,1 @@
+"""omnire view: the reconstructed scene in the browser (see README.md)."""

@@ -1,0 +1,428 @@
+"""The viser application: the scene's objects in the browser and the controls around them.
+
+Layout: the browser draws every object of :class:`~omnire_viewer.scene.ViewerScene` as
+Gaussian splats (one scene node per non-actor node and per actor, actors placed by their
+box pose, the sky as a far shell of splats); the control panel holds the time slider, the
+per-node and per-actor toggles, the selected actor's identity and edits (hide, move, turn),
+the dataset cameras (click a frustum to look through it), and the server render of the
+current browser view next to it.
+
+Scene updates run on one worker thread that always draws the newest requested state, so
+dragging the time slider never queues stale frames.
+"""
+from __future__ import annotations
+
+import errno
+import math
+import socket
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+
+from omnire.api import UserError, rotmat_to_quat
+from omnire_viewer.edits import ActorEdit
+from omnire_viewer.scene import ViewerScene, camera_from_view
+
+BOX_COLOUR = (40, 160, 255)
+SELECTED_COLOUR = (255, 140, 0)
+
+
+class ViewerError(UserError):
+    """The viewer cannot start (address not usable, nothing to show)."""
+
+
+class PortInUseError(ViewerError):
+    """The port asked for is taken."""
+
+
+def check_port(host: str, port: int) -> None:
+    """Raise :class:`PortInUseError` when ``host:port`` cannot be listened on because
+    something else listens there, :class:`ViewerError` for any other reason."""
+    if not 0 <= port <= 65535:
+        raise ViewerError(f"--port {port}: expected 0..65535")
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise ViewerError(f"--host {host!r}: cannot resolve ({exc.strerror})") from None
+    for family, kind, proto, _, address in infos:
+        with socket.socket(family, kind, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server does
+            try:
+                s.bind(address)
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:
+                    raise PortInUseError(f"{host}:{port} is already in use (another viewer?); "
+                                         "choose a free port with --port") from None
+                raise ViewerError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+
+
+def look_at_pose(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(position (3,), wxyz (4,)) of an OpenCV camera-to-world matrix (4, 4)."""
+    return np.asarray(c2w[:3, 3], np.float64), np.asarray(rotmat_to_quat(np.asarray(c2w[:3, :3], np.float64)))
+
+
+class Viewer:
+    """A viser server showing ``scene``.
+
+    Args:
+        scene: what to show.
+        host, port: where to listen (port 0: any free port; see :attr:`port`).
+        title: shown at the top of the panel.
+        frame: the initial moment.
+        verbose: let viser print its address banner.
+    """
+
+    def __init__(self, scene: ViewerScene, host: str = "127.0.0.1", port: int = 8080, title: str = "omnire",
+                 frame: float = 0.0, verbose: bool = True) -> None:
+        import viser
+
+        check_port(host, port)
+        self.scene = scene
+        self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        if port != 0 and self.server.get_port() != port:  # viser moves to the next port when one is taken
+            self.server.stop()
+            raise PortInUseError(f"{host}:{port} was taken while the viewer started; choose another with --port")
+        self.host, self.port = host, self.server.get_port()
+        self.server.scene.set_up_direction("+z")
+        self._handles: dict[str, tuple[object, int]] = {}
+        self._boxes: dict[str, object] = {}
+        self._frusta: dict[str, object] = {}
+        self._sky_handle = None
+        self.selected: Optional[str] = None
+        self._stop = threading.Event()
+        self._dirty = threading.Event()
+        self._idle = threading.Event()
+        self._sync_lock = threading.Lock()
+        self._select_lock = threading.RLock()
+        self._build_gui(title, frame)
+        self._set_initial_camera(frame)
+        self.refresh()
+        self._worker = threading.Thread(target=self._update_loop, name="omnire-viewer-updates", daemon=True)
+        self._worker.start()
+        self._player = threading.Thread(target=self._play_loop, name="omnire-viewer-play", daemon=True)
+        self._player.start()
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def url(self) -> str:
+        host = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
+        return f"http://{host}:{self.port}"
+
+    @property
+    def frame(self) -> float:
+        return float(self.gui_frame.value)
+
+    def hidden_nodes(self) -> frozenset[str]:
+        return frozenset(n for n, box in self.gui_nodes.items() if not box.value)
+
+    # ------------------------------------------------------------------ GUI
+    def _build_gui(self, title: str, frame: float) -> None:
+        gui, sc = self.server.gui, self.scene
+        gui.configure_theme(show_share_button=False, control_width="medium")
+        self.gui_info = gui.add_markdown(self._info_text(title))
+        self._title = title
+        F = sc.num_frames
+        with gui.add_folder("Time"):
+            self.gui_frame = gui.add_slider("Frame", min=0.0, max=float(max(F - 1, 1)), step=0.1,
+                                            initial_value=float(min(max(frame, 0), F - 1)), disabled=F < 2)
+            self.gui_seconds = gui.add_markdown("")
+            self.gui_play = gui.add_checkbox("Play", False, hint="Advance one frame every 0.25 s")
+        with gui.add_folder("Show"):
+            self.gui_nodes = {}
+            for name, kind in sc.node_kinds.items():
+                label = f"{name} ({kind})"
+                self.gui_nodes[name] = gui.add_checkbox(label, True)
+            self.gui_boxes = gui.add_checkbox("Actor boxes", True)
+            self.gui_cameras = gui.add_checkbox("Dataset cameras", True,
+                                                hint="Frusta of the recorded cameras; click one to look through it")
+        with gui.add_folder("Actors"):
+            options = ["(none)"] + sorted(sc.actors)
+            self.gui_actor = gui.add_dropdown("Selected", options, initial_value="(none)",
+                                              hint="Or click an actor's box in the scene")
+            self.gui_actor_info = gui.add_markdown("Click an actor's box, or choose one above.")
+            self.gui_actor_visible = gui.add_checkbox("Visible", True, disabled=True)
+            self.gui_actor_offset = gui.add_vector3("Offset (m)", (0.0, 0.0, 0.0), step=0.1, disabled=True)
+            self.gui_actor_yaw = gui.add_number("Turn (deg)", 0.0, step=1.0, disabled=True)
+            self.gui_actor_reset = gui.add_button("Reset edits of all actors")
+            self.gui_actor_toggles = {}
+            with gui.add_folder("Visibility per actor", expand_by_default=False):
+                for tid in sorted(sc.actors):
+                    self.gui_actor_toggles[tid] = gui.add_checkbox(tid, True)
+        with gui.add_folder("Server render"):
+            self.gui_render_button = gui.add_button("Render this view on the server",
+                                                    hint="The real rasterizer: SH and sky included")
+            self.gui_render_width = gui.add_slider("Width (px)", min=160, max=1920, step=16, initial_value=640)
+            self.gui_render_note = gui.add_markdown("")
+            self.gui_render_image = gui.add_image(np.zeros((9, 16, 3), np.uint8), label="server render",
+                                                  visible=False)
+            self.gui_recolour = gui.add_button("Recolour splats for this view",
+                                               hint="Evaluate the view-dependent (SH) colours from the current viewpoint")
+
+        def redraw(_event=None) -> None:
+            self._dirty.set()
+
+        self.gui_frame.on_update(redraw)
+        for box in self.gui_nodes.values():
+            box.on_update(redraw)
+        self.gui_boxes.on_update(redraw)
+        self.gui_cameras.on_update(redraw)
+        self.gui_actor.on_update(lambda _e: self.select(None if self.gui_actor.value == "(none)" else
+                                                        self.gui_actor.value))
+        self.gui_actor_visible.on_update(lambda _e: self._edit_selected())
+        self.gui_actor_offset.on_update(lambda _e: self._edit_selected())
+        self.gui_actor_yaw.on_update(lambda _e: self._edit_selected())
+        self.gui_actor_reset.on_click(lambda _e: self.reset_edits())
+        for tid, box in self.gui_actor_toggles.items():
+            box.on_update(lambda _e, tid=tid: self.set_hidden(tid, not self.gui_actor_toggles[tid].value))
+        self.gui_render_button.on_click(lambda event: self.render_for_client(event.client))
+        self.gui_recolour.on_click(lambda event: self.recolour(event.client))
+
+        @self.server.scene.on_click()
+        def _(event) -> None:
+            tid = self.scene.pick(event.ray_origin, event.ray_direction, self.frame)
+            if tid is not None:
+                self.select(tid)
+
+    def _info_text(self, title: str, extra: str = "") -> str:
+        sc = self.scene
+        return (f"**{title}**  \n{sc.scene.name}: {sc.num_frames} frames, {len(sc.scene.cameras)} cameras, "
+                f"{sc.model.num_gaussians():,} Gaussians, step {sc.recon.step}" + (f"  \n{extra}" if extra else ""))
+
+    def _set_initial_camera(self, frame: float) -> None:
+        name, c2w, K, W, H = self.scene.cameras_at(frame)[0]
+        position, _ = look_at_pose(c2w)
+        ic = self.server.initial_camera
+        ic.position = tuple(position)
+        ic.look_at = tuple(position + 10.0 * np.asarray(c2w[:3, 2]))
+        ic.up = (0.0, 0.0, 1.0)
+        ic.fov = 2.0 * math.atan(0.5 * H / K[1, 1])
+
+    # ------------------------------------------------------------------ selection and edits
+    def select(self, track_id: Optional[str]) -> None:
+        """Select an actor (None: nothing): show its identity and edits. The panel is
+        updated before :attr:`selected` changes, so whoever sees the new selection sees
+        its description too."""
+        if track_id is not None and track_id not in self.scene.actors:
+            return
+        with self._select_lock:
+            enabled = track_id is not None
+            if enabled:
+                info = self.scene.actors[track_id]
+                edit = self.scene.edits.get(track_id)
+                self.gui_actor_info.content = info.describe()
+                self._syncing = True
+                try:
+                    self.gui_actor_visible.value = not edit.hidden
+                    self.gui_actor_offset.value = edit.offset
+                    self.gui_actor_yaw.value = math.degrees(edit.yaw)
+                finally:
+                    self._syncing = False
+            else:
+                self.gui_actor_info.content = "Click an actor's box, or choose one above."
+            for handle in (self.gui_actor_visible, self.gui_actor_offset, self.gui_actor_yaw):
+                handle.disabled = not enabled
+            if self.gui_actor.value != (track_id or "(none)"):
+                self.gui_actor.value = track_id or "(none)"
+            self.selected = track_id
+        self._dirty.set()
+
+    _syncing = False
+
+    def _edit_selected(self) -> None:
+        # under the selection lock: the fields and the selection they belong to change together
+        with self._select_lock:
+            if self._syncing or self.selected is None:
+                return
+            edit = ActorEdit(hidden=not self.gui_actor_visible.value,
+                             offset=tuple(float(v) for v in self.gui_actor_offset.value),
+                             yaw=math.radians(float(self.gui_actor_yaw.value)))
+            self.edit_actor(self.selected, edit)
+
+    def edit_actor(self, track_id: str, edit: ActorEdit) -> None:
+        """Apply ``edit`` to ``track_id`` (through the edit model) and redraw."""
+        with self.scene.lock:
+            self.scene.edits.set(track_id, edit)
+        toggle = self.gui_actor_toggles.get(track_id)
+        if toggle is not None and toggle.value == edit.hidden:
+            toggle.value = not edit.hidden
+        self._dirty.set()
+
+    def set_hidden(self, track_id: str, hidden: bool) -> None:
+        edit = self.scene.edits.get(track_id)
+        if edit.hidden != hidden:
+            self.edit_actor(track_id, ActorEdit(hidden, edit.offset, edit.yaw))
+            if track_id == self.selected:
+                self.select(track_id)
+
+    def reset_edits(self) -> None:
+        with self.scene.lock:
+            self.scene.edits.clear()
+        for box in self.gui_actor_toggles.values():
+            if not box.value:
+                box.value = True
+        self.select(self.selected)
+
+    # ------------------------------------------------------------------ camera actions
+    def look_through(self, client, c2w: np.ndarray, K: np.ndarray, height: int) -> None:
+        """Put ``client``'s view at a dataset camera (pose and vertical field of view)."""
+        position, wxyz = look_at_pose(c2w)
+        with client.atomic():
+            client.camera.fov = 2.0 * math.atan(0.5 * height / K[1, 1])
+            client.camera.position = position
+            client.camera.wxyz = wxyz
+
+    def client_camera(self, client, max_width: Optional[int] = None):
+        """The :class:`Camera` of ``client``'s current view (canvas aspect; scaled to at most
+        ``max_width`` pixels wide)."""
+        cam = client.camera
+        W, H = int(cam.image_width), int(cam.image_height)
+        if W <= 0 or H <= 0:
+            W, H = 640, 360
+        if max_width is not None and W > max_width:
+            W, H = max_width, max(1, round(H * max_width / W))
+        return camera_from_view(cam.position, cam.wxyz, float(cam.fov), W, H, self.scene.model.device)
+
+    def render_for_client(self, client) -> np.ndarray:
+        """Render ``client``'s view on the server and show it in the panel; returns (H, W, 3)."""
+        camera = self.client_camera(client, int(self.gui_render_width.value))
+        t0 = time.perf_counter()
+        rgb = self.scene.render(camera, self.frame, self.hidden_nodes())
+        dt = time.perf_counter() - t0
+        image = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+        self.gui_render_image.image = image
+        self.gui_render_image.visible = True
+        self.gui_render_note.content = (f"{camera.width}x{camera.height} at frame {self.frame:.1f} in {dt:.2f} s "
+                                        f"({self.scene.model.rasterizer.name} rasterizer)")
+        return rgb
+
+    def recolour(self, client) -> None:
+        self.scene.set_eye(client.camera.position)
+        self._dirty.set()
+
+    # ------------------------------------------------------------------ drawing
+    def refresh(self) -> None:
+        """Bring the browser scene up to date with the current state (objects present at the
+        frame, their poses and contents, toggles, boxes, cameras)."""
+        with self._sync_lock:
+            frame = self.frame
+            sc = self.scene
+            t = sc.time(frame)
+            self.gui_seconds.content = f"t = {t.seconds:.3f} s"
+            objects = sc.objects_at(frame)
+            hidden = self.hidden_nodes()
+            api = self.server.scene
+            for name, obj in objects.items():
+                handle, version = self._handles.get(name, (None, -1))
+                if handle is None or version != obj.version:
+                    s = obj.splats
+                    handle = api.add_gaussian_splats(name, s.centers, s.covariances, s.rgbs, s.opacities,
+                                                     position=obj.position, wxyz=obj.wxyz)
+                    self._handles[name] = (handle, obj.version)
+                else:
+                    handle.position = obj.position
+                    handle.wxyz = obj.wxyz
+                handle.visible = obj.node not in hidden
+            for name in [n for n in self._handles if n not in objects]:
+                self._handles.pop(name)[0].remove()
+            self._draw_sky(hidden)
+            self._draw_boxes(frame, hidden)
+            self._draw_cameras(frame)
+
+    def _draw_sky(self, hidden: frozenset[str]) -> None:
+        env = self.scene.environment_nodes()
+        if not env:
+            return
+        if self._sky_handle is None:
+            sky = self.scene.sky()
+            if sky is None:
+                return
+            self._sky_handle = self.server.scene.add_gaussian_splats("/sky", sky.centers, sky.covariances, sky.rgbs,
+                                                                     sky.opacities)
+        self._sky_handle.visible = env[0] not in hidden
+
+    def _draw_boxes(self, frame: float, hidden: frozenset[str]) -> None:
+        boxes = self.scene.actor_boxes(frame) if self.gui_boxes.value else {}
+        api = self.server.scene
+        for tid, (R, c, size) in boxes.items():
+            colour = SELECTED_COLOUR if tid == self.selected else BOX_COLOUR
+            key = (tuple(size), colour)
+            handle = self._boxes.get(tid)
+            if handle is None or getattr(handle, "_omnire_key", None) != key:
+                if handle is not None:
+                    handle.remove()
+                handle = api.add_box(f"/boxes/{tid}", colour, tuple(float(v) for v in size), wireframe=True,
+                                     cast_shadow=False, receive_shadow=False)
+                handle._omnire_key = key
+                self._boxes[tid] = handle
+            handle.position = c
+            handle.wxyz = rotmat_to_quat(R)
+            handle.visible = self.scene.actors[tid].node not in hidden
+        for tid in [t for t in self._boxes if t not in boxes]:
+            self._boxes.pop(tid).remove()
+
+    def _draw_cameras(self, frame: float) -> None:
+        api = self.server.scene
+        cams = self.scene.cameras_at(frame) if self.gui_cameras.value else []
+        seen = set()
+        for name, c2w, K, W, H in cams:
+            key = f"/cameras/{name or 'camera'}"
+            seen.add(key)
+            position, wxyz = look_at_pose(c2w)
+            handle = self._frusta.get(key)
+            if handle is None:
+                handle = api.add_camera_frustum(key, fov=2.0 * math.atan(0.5 * H / K[1, 1]), aspect=W / H, scale=0.4,
+                                                color=(200, 40, 40))
+                self._frusta[key] = handle
+
+                @handle.on_click
+                def _(event, name=name) -> None:
+                    for cname, c2w_now, K_now, _W, H_now in self.scene.cameras_at(self.frame):
+                        if cname == name:
+                            self.look_through(event.client, c2w_now, K_now, H_now)
+
+            handle.position = position
+            handle.wxyz = wxyz
+        for key in [k for k in self._frusta if k not in seen]:
+            self._frusta.pop(key).remove()
+
+    # ------------------------------------------------------------------ scene swaps (training)
+    def set_recon(self, recon, note: str = "") -> None:
+        """Show another state of the scene (a training snapshot); redraws everything."""
+        self.scene.set_recon(recon)
+        self.gui_info.content = self._info_text(self._title, note)
+        self._dirty.set()
+
+    def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Block until every requested update has been drawn (tests, scripts)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if not self._dirty.is_set() and self._idle.is_set():
+                return True
+            time.sleep(0.02)
+        return False
+
+    # ------------------------------------------------------------------ threads
+    def _update_loop(self) -> None:
+        while not self._stop.is_set():
+            self._idle.set()
+            if not self._dirty.wait(0.2):
+                continue
+            self._idle.clear()
+            self._dirty.clear()
+            try:
+                self.refresh()
+            except Exception as exc:  # noqa: BLE001 - keep the viewer alive; show what failed
+                self.gui_render_note.content = f"update failed: {type(exc).__name__}: {exc}"
+
+    def _play_loop(self) -> None:
+        while not self._stop.wait(0.25):
+            if self.gui_play.value and self.scene.num_frames > 1:
+                nxt = math.floor(self.frame) + 1
+                self.gui_frame.value = float(nxt if nxt <= self.scene.num_frames - 1 else 0)
+                self._dirty.set()
+
+    def close(self) -> None:
+        self._stop.set()
+        self.server.stop()

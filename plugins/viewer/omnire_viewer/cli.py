@@ -1,0 +1,84 @@
+"""``omnire view <run>``: the trained scene in the browser."""
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Optional
+
+import tyro
+
+from omnire_viewer.app import ViewerError
+
+
+@dataclasses.dataclass
+class ViewArgs:
+    """Show a trained scene in the browser (viser): Gaussians drawn by the browser, a time
+    slider, per-node and per-actor toggles, the dataset cameras, actor selection and edits,
+    and server renders with the real rasterizer."""
+
+    run_dir: tyro.conf.Positional[Path]
+    """Run directory written by omnire train."""
+    host: str = "127.0.0.1"
+    """Address to listen on (0.0.0.0: every interface; the viewer has no authentication)."""
+    port: int = 8080
+    """Port to listen on (0: any free port)."""
+    checkpoint: Optional[Path] = None
+    """Checkpoint file (default: the newest intact one in the run directory)."""
+    frame: float = 0.0
+    """Frame shown first."""
+    max_gaussians: int = 3_000_000
+    """Gaussians of non-actor nodes sent to the browser at most (a uniform subsample above;
+    server renders use all)."""
+    sky_splats: int = 10_000
+    """Splats of the browser's sky shell (0: no sky in the browser view)."""
+    device: Optional[str] = None
+    """Torch device for loading and server renders (default: the run's)."""
+    seconds: float = 0.0
+    """Stop after this many seconds (0: run until Ctrl-C)."""
+
+
+def check_run_dir(run_dir: Path, checkpoint: Optional[Path]) -> None:
+    """Fail early, before any port is opened or data read, when there is nothing to show."""
+    from omnire.rundir import RunDirectory
+
+    if checkpoint is not None:
+        if not Path(checkpoint).is_file():
+            raise ViewerError(f"--checkpoint {checkpoint}: no such file")
+        return
+    if not run_dir.is_dir():
+        raise ViewerError(f"{run_dir}: no such run directory")
+    run = RunDirectory(run_dir)
+    run.read_info()  # a clear error when run.json is missing or malformed
+    if not run.checkpoints():
+        raise ViewerError(f"{run_dir}: no checkpoint to show (checkpoints/step-*.pt is empty: the run has not saved "
+                          "one yet; wait for the first, or watch training live with --trainer.observers viewer)")
+
+
+def main(argv: list[str], plugins) -> int:
+    from omnire.api import Reconstruction
+    from omnire.ui import output_console
+    from omnire_viewer.app import Viewer, check_port
+    from omnire_viewer.scene import ViewerScene
+
+    args = tyro.cli(ViewArgs, args=argv, prog="omnire view")
+    check_run_dir(args.run_dir, args.checkpoint)
+    check_port(args.host, args.port)
+    console = output_console()
+    recon = Reconstruction.from_run(args.run_dir, plugins, args.checkpoint, device=args.device)
+    if not 0 <= args.frame <= recon.scene.num_frames - 1:
+        raise ViewerError(f"--frame {args.frame}: outside the scene's frames 0..{recon.scene.num_frames - 1}")
+    scene = ViewerScene(recon, max_gaussians=args.max_gaussians, sky_count=args.sky_splats)
+    viewer = Viewer(scene, args.host, args.port, title=f"{recon.run_info.method} - {args.run_dir.name}",
+                    frame=args.frame, verbose=False)
+    console.print(f"omnire view: {viewer.url}  ({recon.run_info.method}, step {recon.step}, "
+                  f"{recon.num_gaussians():,} Gaussians; Ctrl-C stops)", highlight=False)
+    try:
+        start = time.monotonic()
+        while not args.seconds or time.monotonic() - start < args.seconds:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.close()
+    return 0

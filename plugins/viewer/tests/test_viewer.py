@@ -1,0 +1,291 @@
+"""omnire view: the scene drawn by a real browser (headless Chromium) agrees with the server's
+rasterizer; the time slider moves and re-skins actors; hide/move edits; picking; the
+training observer; clear errors for a run without checkpoint and a busy port."""
+from __future__ import annotations
+
+import math
+import socket
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from omnire.api import Reconstruction, UserError
+from omnire_viewer.app import PortInUseError, Viewer
+from omnire_viewer.cli import main as view_main
+from omnire_viewer.edits import ActorEdit
+from omnire_viewer.headless import HeadlessChromium, find_chromium
+from omnire_viewer.scene import ViewerScene
+
+FRAME = 2
+SHOW_ONLY_CANVAS = """(() => {
+  const canvases = [...document.querySelectorAll('canvas')].sort((a, b) => b.width * b.height - a.width * a.height);
+  document.body.style.visibility = 'hidden';   // the control panel, notifications, logo ...
+  canvases[0].style.visibility = 'visible';    // ... all but the 3D view
+  return [canvases[0].width, canvases[0].height];
+})()"""
+
+
+@pytest.fixture(scope="module")
+def recon(tiny_run, plugins):
+    return Reconstruction.from_run(tiny_run, plugins)
+
+
+@pytest.fixture()
+def viewer(recon):
+    v = Viewer(ViewerScene(recon), "127.0.0.1", 0, frame=FRAME, verbose=False)
+    yield v
+    v.close()
+
+
+def blocks(image: np.ndarray, size: int) -> np.ndarray:
+    """(H, W, 3) -> (H // size, W // size, 3) block means."""
+    H, W = image.shape[0] // size * size, image.shape[1] // size * size
+    return image[:H, :W].reshape(H // size, size, W // size, size, 3).mean(axis=(1, 3))
+
+
+def histogram(image: np.ndarray, bins: int = 16) -> np.ndarray:
+    """(3, bins) per-channel histograms of an image in [0, 1], each summing to 1."""
+    return np.stack([np.histogram(image[..., c], bins=bins, range=(0, 1))[0] / image[..., c].size for c in range(3)])
+
+
+def settled_screenshot(browser: HeadlessChromium, drawn: bool, timeout: float = 60.0) -> np.ndarray:
+    """A screenshot once the browser's image has stopped changing for three shots in a row
+    (the page loads, splats fade in and are sorted asynchronously after every change); with
+    ``drawn``, also waiting while the view is still a flat page. Returns the last shot at
+    the timeout, for the assertions to report."""
+    shots, deadline = [], time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        time.sleep(0.6)
+        shots = (shots + [browser.screenshot().astype(np.float64) / 255.0])[-3:]
+        stable = len(shots) == 3 and all(np.abs(s - shots[-1]).mean() < 0.5 / 255 for s in shots[:-1])
+        if stable and (not drawn or shots[-1].std() > 0.02):
+            break
+    return shots[-1]
+
+
+@pytest.mark.skipif(find_chromium() is None, reason="headless browser test: no chromium on PATH "
+                    "(Debian: apt-get install chromium; .ci/run installs it)")
+def test_browser_draws_the_scene_like_the_server(viewer, recon, tmp_path):
+    import imageio.v3 as iio
+
+    viewer.gui_boxes.value = False    # overlays the server does not draw
+    viewer.gui_cameras.value = False
+    W, H = 360, 240
+    with HeadlessChromium(width=W, height=H) as browser:
+        browser.navigate(viewer.url)
+        deadline = time.monotonic() + 60
+        while not viewer.server.get_clients():
+            assert time.monotonic() < deadline, f"the page never connected: {browser.log_tail()}"
+            time.sleep(0.1)
+        client = next(iter(viewer.server.get_clients().values()))
+        cam = recon.scene.cameras[0]
+        viewer.look_through(client, cam.cam_to_world[FRAME], cam.intrinsics, cam.height)
+        assert viewer.wait_idle()
+        deadline = time.monotonic() + 30
+        while np.abs(np.asarray(client.camera.position) - cam.cam_to_world[FRAME, :3, 3]).max() > 1e-4:
+            assert time.monotonic() < deadline, "the browser camera did not reach the dataset camera"
+            time.sleep(0.1)
+        assert browser.evaluate(SHOW_ONLY_CANVAS) == [W, H]
+        shot = settled_screenshot(browser, drawn=True)
+        camera = viewer.client_camera(client)
+        assert (camera.width, camera.height) == (W, H)
+        server = viewer.scene.render(camera, FRAME, viewer.hidden_nodes())
+        iio.imwrite(tmp_path / "browser.png", (shot * 255).astype(np.uint8))
+        iio.imwrite(tmp_path / "server.png", (server * 255).astype(np.uint8))
+
+        # The scene is drawn: structure, not a flat page (the empty UI is white, see below).
+        assert shot.std() > 0.05
+        # Colours agree region by region. The browser quantises colours and opacities to
+        # 8 bits and covariances to float16, cuts splats at 2.8 sigma and below alpha 0.01
+        # (the rasterizer: alpha 1/255, capped at 0.99), sorts splats by centre depth
+        # globally (the rasterizer per tile) and approximates the sky by a far shell of
+        # splats. These move edges and thin overlaps, not the colour of a 12x12-pixel
+        # region: block means agree to a few percent on average, while a view turned by
+        # 20 degrees differs by several times that (checked below), so 0.05 separates
+        # "same picture" from "another picture" with margin on both sides.
+        diff = np.abs(blocks(shot, 12) - blocks(server, 12))
+        hist = np.abs(histogram(shot) - histogram(server)).sum(axis=1).max()
+        print(f"block mean abs diff {diff.mean():.4f} (95th pct {np.percentile(diff, 95):.4f}), "
+              f"histogram L1 {hist:.3f}")
+        assert diff.mean() < 0.05 and np.percentile(diff, 95) < 0.2
+        assert hist < 0.5  # most of each histogram's mass in the same 1/16-wide bins
+
+        turned = cam.cam_to_world[FRAME].copy()
+        c, s = math.cos(math.radians(20)), math.sin(math.radians(20))
+        turned[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ turned[:3, :3]
+        other = viewer.scene.render(camera.with_pose(torch.as_tensor(turned, dtype=torch.float32)), FRAME)
+        wrong = np.abs(blocks(shot, 12) - blocks(other, 12)).mean()
+        assert wrong > 2 * diff.mean(), f"a turned view differs by only {wrong:.4f}: the test cannot tell views apart"
+
+        # The panel's server render is that same image.
+        np.testing.assert_allclose(viewer.render_for_client(client), server, atol=1e-6)
+        assert viewer.gui_render_image.visible
+
+        # Click an actor in the browser: the click's ray selects it and the panel names it.
+        K, w2c = camera.K.double().numpy(), camera.world_to_cam.double().numpy()
+        centre = camera.center.double().numpy()
+        candidates = []
+        for tid, (_R, c, _size) in viewer.scene.actor_boxes(FRAME).items():
+            p = w2c[:3, :3] @ c + w2c[:3, 3]
+            u, v = (K @ p)[:2] / p[2]
+            if p[2] > 1 and 10 < u < W - 10 and 10 < v < H - 10:
+                candidates.append((p[2], tid, u, v))
+        assert candidates, "an actor is in view"
+        _, target, u, v = min(candidates)
+        expected = viewer.scene.pick(centre, camera.cam_to_world[:3, :3].double().numpy() @ np.linalg.solve(K, [u, v, 1.0]),
+                                     FRAME)
+        assert expected is not None
+        for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
+            browser.call("Input.dispatchMouseEvent", type=kind, x=float(u), y=float(v), button="left", clickCount=1)
+        deadline = time.monotonic() + 20
+        while viewer.selected != expected:
+            assert time.monotonic() < deadline, f"clicking {target} in the browser selected {viewer.selected}"
+            time.sleep(0.1)
+        info = viewer.scene.actors[expected]
+        assert expected in viewer.gui_actor_info.content and info.class_name in viewer.gui_actor_info.content
+
+        # Not the empty UI: with every node switched off the page is blank and uniform.
+        for box in viewer.gui_nodes.values():
+            box.value = False
+        assert viewer.wait_idle()
+        empty = settled_screenshot(browser, drawn=False)
+        assert empty.std() < 0.02 and np.abs(empty - shot).mean() > 0.1
+
+
+def test_time_slider_moves_rigid_actors_and_reskins_pedestrians(viewer, recon):
+    viewer.wait_idle()
+    before = {name: (version, pos.copy()) for name, (h, version) in viewer._handles.items()
+              for pos in [np.asarray(h.position)]}
+    viewer.gui_frame.value = 6.0
+    viewer._dirty.set()
+    assert viewer.wait_idle()
+    boxes = viewer.scene.actor_boxes(6.0)
+    moved = reskinned = 0
+    for name, (handle, version) in viewer._handles.items():
+        if not name.startswith("/actors/"):
+            continue
+        node, tid = name.split("/")[2:4]
+        np.testing.assert_allclose(handle.position, boxes[tid][1], atol=1e-5)  # placed by its box at frame 6
+        if name in before:
+            old_version, old_pos = before[name]
+            if node == "rigid":
+                assert version == old_version, "a rigid actor is moved, not re-sent"
+                moved += np.abs(old_pos - boxes[tid][1]).max() > 1e-3
+            elif node == "smpl":
+                reskinned += version != old_version
+    assert moved > 0 and reskinned > 0
+    # objects follow presence: every object drawn is present at frame 6 and vice versa
+    drawn = {n.split("/")[3] for n in viewer._handles if n.startswith("/actors/")}
+    assert drawn == set(boxes)
+
+
+def test_hide_move_and_pick(viewer, recon):
+    sc = viewer.scene
+    cam = recon.scene.cameras[0]
+    camera = recon.camera(recon.scene.views([FRAME])[0])
+    boxes = sc.actor_boxes(FRAME)
+    # the car nearest the camera, and a ray from the camera through its box centre
+    car = min((t for t in boxes if sc.actors[t].node == "rigid"),
+              key=lambda t: np.linalg.norm(boxes[t][1] - cam.cam_to_world[FRAME, :3, 3]))
+    origin = cam.cam_to_world[FRAME, :3, 3]
+    assert sc.pick(origin, boxes[car][1] - origin, FRAME) == car
+    assert sc.pick(origin, -(boxes[car][1] - origin), FRAME) != car
+    viewer.select(car)
+    assert car in viewer.gui_actor_info.content and sc.actors[car].class_name in viewer.gui_actor_info.content
+
+    base = sc.render(camera, FRAME)
+    viewer.edit_actor(car, ActorEdit(hidden=True))
+    assert viewer.wait_idle()
+    assert f"/actors/rigid/{car}" not in viewer._handles
+    hidden = sc.render(camera, FRAME)
+    changed = np.abs(hidden - base).max(axis=-1) > 1e-4
+    assert changed.any()
+    assert car not in sc.actor_boxes(FRAME)
+    # pixels change only where cars are drawn (the alpha footprint of the rigid node)
+    with torch.no_grad():
+        cars = recon.render(camera, recon.time(FRAME), hidden=frozenset({"background", "smpl", "sky"}))
+    assert not (changed & ~(cars.alpha[..., 0].numpy() > 1e-4)).any()
+
+    viewer.edit_actor(car, ActorEdit(offset=(0.0, 0.0, 2.0)))
+    assert viewer.wait_idle()
+    handle, _ = viewer._handles[f"/actors/rigid/{car}"]
+    np.testing.assert_allclose(handle.position, boxes[car][1] + [0, 0, 2.0], atol=1e-5)
+    np.testing.assert_allclose(sc.actor_boxes(FRAME)[car][1], boxes[car][1] + [0, 0, 2.0], atol=1e-5)
+    assert np.abs(sc.render(camera, FRAME) - base).max() > 1e-3  # the server render moved it too
+    viewer.reset_edits()
+    assert viewer.wait_idle()
+    np.testing.assert_allclose(sc.render(camera, FRAME), base, atol=1e-6)
+
+
+def test_training_observer_shows_snapshots(recon, plugins):
+    """The registered observer, built the way the trainer builds it, shows copies: the
+    trained model is never touched and updates reach the viewer at on_step."""
+    import os
+
+    os.environ["OMNIRE_VIEWER_PORT"] = "0"
+    trainer = SimpleNamespace(recon=recon, run_dir=None, config=SimpleNamespace(
+        method_name="omnire", trainer=SimpleNamespace(observe_every=1)))
+    observer = plugins.train_observers.get("viewer").factory(trainer)
+    try:
+        shown = observer.viewer.scene.recon
+        assert shown is not recon and shown.model is not recon.model
+        key = "nodes.background.gaussian_params.means"
+        original = recon.model.state_dict()[key].clone()
+        shown.model.state_dict()[key].add_(1.0)  # the viewer's copy is independent ...
+        assert torch.equal(recon.model.state_dict()[key], original)  # ... of the model being trained
+        observer.on_step(7, {"loss": 0.5, "psnr": 20.0})
+        assert observer.viewer.scene.recon is not shown and "PSNR 20.00" in observer.viewer.gui_info.content
+        assert torch.equal(observer.viewer.scene.recon.model.state_dict()[key], original)
+        assert observer.viewer.wait_idle()
+        assert "/nodes/background" in observer.viewer._handles
+    finally:
+        observer.close()
+        del os.environ["OMNIRE_VIEWER_PORT"]
+
+
+def test_clear_errors(tiny_run, plugins, recon, tmp_path):
+    empty = tmp_path / "run"
+    (empty / "checkpoints").mkdir(parents=True)
+    (empty / "run.json").write_text((tiny_run / "run.json").read_text())
+    with pytest.raises(UserError, match="no checkpoint"):
+        view_main([str(empty)], plugins)
+    with pytest.raises(UserError, match="no such run directory"):
+        view_main([str(tmp_path / "missing")], plugins)
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        t0 = time.monotonic()
+        with pytest.raises(PortInUseError, match=f"127.0.0.1:{port} is already in use"):
+            view_main([str(tiny_run), "--port", str(port)], plugins)
+        assert time.monotonic() - t0 < 5, "a busy port is reported before the scene is loaded"
+        with pytest.raises(PortInUseError):
+            Viewer(ViewerScene(recon), "127.0.0.1", port, verbose=False)
+
+
+def test_view_command_serves_the_page(tiny_run, plugins):
+    """``omnire view`` end to end: loads the run, serves the viewer's page on the port asked
+    for, and stops after --seconds."""
+    import threading
+    import urllib.request
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    result = {}
+    thread = threading.Thread(target=lambda: result.setdefault("code", view_main(
+        [str(tiny_run), "--port", str(port), "--seconds", "4", "--frame", "1.5"], plugins)))
+    thread.start()
+    page, deadline = None, time.monotonic() + 30
+    while page is None and time.monotonic() < deadline and thread.is_alive():
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as r:
+                page = r.read().decode("utf-8", "replace")
+        except OSError:
+            time.sleep(0.1)
+    thread.join(30)
+    assert page is not None and "<html" in page.lower()
+    assert result.get("code") == 0
