@@ -95,7 +95,7 @@ def main(argv: list[str], plugins) -> int:
                          progress=lambda _f: bar.advance(task))
     plys = [p for p in written.files if p.suffix == ".ply"]
     others = [p for p in written.files if p.suffix != ".ply"]
+    also = f"; also {', '.join(sorted({p.name for p in others}))}" if others else ""
     console.print(f"wrote {len(plys)} PLY file(s), {written.count} Gaussians in total, to {args.output} "
-                  f"in {time.perf_counter() - t0:.1f} s" + (f"; also {', '.join(p.name for p in others)}" if others else ""),
-                  highlight=False)
+                  f"in {time.perf_counter() - t0:.1f} s{also}", highlight=False)
     return 0

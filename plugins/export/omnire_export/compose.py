@@ -142,7 +142,7 @@ def actor_parts(name: str, node: ActorNode, t: SceneTime, state: ActorState, max
         instance = node.gaussian_buffers["instance"][out.rows]
         ids, counts = torch.unique_consecutive(instance, return_counts=True)
         start = 0
-        for i, c in zip(ids.tolist(), counts.tolist()):
+        for i, c in zip(ids.tolist(), counts.tolist(), strict=True):
             k = position[int(i)]
             g = Gaussians(*(getattr(out.gaussians, f)[start:start + c] for f in
                             ("means", "quats", "scales", "opacities", "sh0", "shN")))

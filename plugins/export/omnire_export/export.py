@@ -29,11 +29,10 @@ import re
 from pathlib import Path
 from typing import Callable, Iterable, Optional
 
-import numpy as np
 import torch
 
 from omnire.api import ActorNode, EnvironmentNode, SceneTime, atomic_write_text, write_png
-from omnire_export.compose import Part, Pose, actor_parts, local_state, scene_parts
+from omnire_export.compose import Part, Pose, local_state, scene_parts
 from omnire_export.ply import PlyStreamWriter, pack_rows
 
 DEFAULT_CHUNK_ROWS = 1 << 16
@@ -208,8 +207,22 @@ def export_per_node(recon, t: SceneTime, folder: Path, chunk_rows: int = DEFAULT
         "environment": [{"file": p.name, "node": p.stem, "layout": ENVIRONMENT_LAYOUT} for p in envs],
         "parts": entries,
     }
-    atomic_write_text(folder / "poses.json", json.dumps(manifest, indent=1) + "\n")
+    atomic_write_text(folder / "poses.json", manifest_json(manifest))
     return Written(files + envs + [folder / "poses.json"], total)
+
+
+def manifest_json(manifest: dict) -> str:
+    """``poses.json`` text: one line per part and per recorded pose (readable, compact)."""
+    head = [f" {json.dumps(k)}: {json.dumps(v)}" for k, v in manifest.items() if k != "parts"]
+    parts = []
+    for part in manifest["parts"]:
+        fields = {k: v for k, v in part.items() if k != "poses"}
+        text = json.dumps(fields)
+        if "poses" in part:
+            poses = ",\n   ".join(json.dumps(p) for p in part["poses"])
+            text = text[:-1] + ', "poses": [\n   ' + poses + "]}"
+        parts.append("  " + text)
+    return "{\n" + ",\n".join(head + [' "parts": [\n' + ",\n".join(parts) + "]"]) + "\n}\n"
 
 
 def parse_frames(spec: str, num_frames: int) -> list[float]:
@@ -244,7 +257,7 @@ def export(recon, frames: list[float], output: Path, per_node: bool, sequence: b
     F = recon.scene.num_frames
     files, total = [], 0
     if per_node:
-        for k, frame in enumerate(frames):
+        for frame in frames:
             folder = output / f"frame_{frame_label(frame, F)}" if sequence else output
             done = export_per_node(recon, recon.time(frame), folder, chunk_rows, write_sky=not sequence)
             files += done.files

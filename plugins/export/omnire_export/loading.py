@@ -44,7 +44,8 @@ def load_mapped_checkpoint(path: Path) -> dict:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except pickle.UnpicklingError:
-        raise CheckpointError(f"{path}: refused as unsafe (it holds objects other than tensors and plain data)") from None
+        raise CheckpointError(f"{path}: refused as unsafe (it holds objects other than tensors and plain "
+                              "data)") from None
     except Exception as exc:  # noqa: BLE001 - torch raises many kinds for a damaged file
         first = str(exc).splitlines()[0] if str(exc) else "unreadable"
         raise CheckpointError(f"{path}: damaged or truncated checkpoint ({type(exc).__name__}: {first})") from None

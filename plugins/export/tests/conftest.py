@@ -25,7 +25,8 @@ def make_tiny_run(root):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     plugins = load_plugins()
     scene = root / "scene"
-    assert plugins.commands.get("synth").main(["urban", str(scene), "--tiny", "--num-cameras", "1"], plugins) in (0, None)
+    synth = plugins.commands.get("synth").main
+    assert synth(["urban", str(scene), "--tiny", "--num-cameras", "1"], plugins) in (0, None)
     argv = ["omnire", "processed", "--data", str(scene), "--trainer.max-steps", "2",
             "--trainer.output-dir", str(root / "runs"), "--trainer.run-name", "omnire", "--trainer.no-progress",
             "--trainer.eval-train-views", "1", "--trainer.threads", "1", "--method.rasterizer", "torch",

@@ -75,7 +75,8 @@ def test_ply_layout_read_back_and_render(whole, recon):
             expected = recon.render(camera, t, hidden=frozenset({"sky"})).rgb
             splats = Splats(g.means, g.quats, g.activated_scales, g.activated_opacities,
                             g.colors(camera.center, recon.sh_degree()))
-            got = recon.model.rasterizer.rasterize(splats, camera, RasterSettings(background=recon.model._background)).rgb
+            settings = RasterSettings(background=recon.model._background)
+            got = recon.model.rasterizer.rasterize(splats, camera, settings).rgb
         assert float(expected.std()) > 0.01, "the comparison needs a non-trivial image"
         assert float((got - expected).abs().max()) <= 1e-4
 

@@ -158,7 +158,7 @@ class Viewer:
             self.gui_render_image = gui.add_image(np.zeros((9, 16, 3), np.uint8), label="server render",
                                                   visible=False)
             self.gui_recolour = gui.add_button("Recolour splats for this view",
-                                               hint="Evaluate the view-dependent (SH) colours from the current viewpoint")
+                                               hint="Evaluate the view-dependent (SH) colours from here")
 
         def redraw(_event=None) -> None:
             self._dirty.set()
@@ -168,8 +168,8 @@ class Viewer:
             box.on_update(redraw)
         self.gui_boxes.on_update(redraw)
         self.gui_cameras.on_update(redraw)
-        self.gui_actor.on_update(lambda _e: self.select(None if self.gui_actor.value == "(none)" else
-                                                        self.gui_actor.value))
+        self.gui_actor.on_update(
+            lambda _e: self.select(None if self.gui_actor.value == "(none)" else self.gui_actor.value))
         self.gui_actor_visible.on_update(lambda _e: self._edit_selected())
         self.gui_actor_offset.on_update(lambda _e: self._edit_selected())
         self.gui_actor_yaw.on_update(lambda _e: self._edit_selected())
@@ -191,7 +191,7 @@ class Viewer:
                 f"{sc.model.num_gaussians():,} Gaussians, step {sc.recon.step}" + (f"  \n{extra}" if extra else ""))
 
     def _set_initial_camera(self, frame: float) -> None:
-        name, c2w, K, W, H = self.scene.cameras_at(frame)[0]
+        _name, c2w, K, _W, H = self.scene.cameras_at(frame)[0]
         position, _ = look_at_pose(c2w)
         ic = self.server.initial_camera
         ic.position = tuple(position)

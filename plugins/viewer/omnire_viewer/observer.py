@@ -39,7 +39,8 @@ class ViewerObserver:
         try:
             port = int(os.environ.get("OMNIRE_VIEWER_PORT", "8080"))
         except ValueError:
-            raise UserError(f"OMNIRE_VIEWER_PORT={os.environ['OMNIRE_VIEWER_PORT']!r}: expected a port number") from None
+            raise UserError(f"OMNIRE_VIEWER_PORT={os.environ['OMNIRE_VIEWER_PORT']!r}: expected a port "
+                            "number") from None
         self.trainer = trainer
         scene = ViewerScene(snapshot(trainer.recon))
         name = trainer.run_dir.name if trainer.run_dir is not None else "training"

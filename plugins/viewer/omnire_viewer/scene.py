@@ -154,16 +154,18 @@ class ViewerScene:
             self._cache.clear()
 
     # ------------------------------------------------------------------ objects
-    def _splats_for(self, name: str, g: Gaussians, world_means: Optional[torch.Tensor], budget: bool) -> tuple[SplatArrays, int]:
+    def _splats_for(self, name: str, g: Gaussians, world_means: Optional[torch.Tensor],
+                    budget: bool) -> tuple[SplatArrays, int]:
         """Cached splats of ``g`` under ``name``: rebuilt only when the tensors changed."""
         tensors = tuple(getattr(g, k) for k in KEYS)
         versions = tuple(t._version for t in tensors)
         hit = self._cache.get(name)
         if hit is not None:
-            if all(a is b for a, b in zip(hit.tensors, tensors)):
+            if all(a is b for a, b in zip(hit.tensors, tensors, strict=True)):
                 unchanged = hit.versions == versions  # the same tensors: changed only in place
             else:
-                unchanged = all(a.shape == b.shape and torch.equal(a, b) for a, b in zip(hit.tensors, tensors))
+                unchanged = all(a.shape == b.shape and torch.equal(a, b)
+                                for a, b in zip(hit.tensors, tensors, strict=True))
             if unchanged:
                 return hit.splats, hit.version
         keep = None
@@ -218,7 +220,7 @@ class ViewerScene:
         ids, counts = torch.unique_consecutive(instance, return_counts=True)
         slot = {int(i): k for k, i in enumerate(state.ids.tolist())}
         start = 0
-        for i, c in zip(ids.tolist(), counts.tolist()):
+        for i, c in zip(ids.tolist(), counts.tolist(), strict=True):
             g = Gaussians(*(getattr(res.gaussians, k)[start:start + c] for k in KEYS))
             k = slot[int(i)]
             yield node.track_ids[int(i)], g, state.R[k], state.t[k]
@@ -228,7 +230,7 @@ class ViewerScene:
         """The browser's sky shell (from the first environment node with a map), or None."""
         if self.sky_count <= 0:
             return None
-        for name, node in self.model.nodes.items():
+        for node in self.model.nodes.values():
             if isinstance(node, EnvironmentNode) and hasattr(node, "environment_map"):
                 centres = np.stack([c.cam_to_world[:, :3, 3] for c in self.scene.cameras]).reshape(-1, 3)
                 radius = max(300.0, 4.0 * float(self.model.scene_radius))

@@ -135,8 +135,8 @@ def test_browser_draws_the_scene_like_the_server(viewer, recon, tmp_path):
                 candidates.append((p[2], tid, u, v))
         assert candidates, "an actor is in view"
         _, target, u, v = min(candidates)
-        expected = viewer.scene.pick(centre, camera.cam_to_world[:3, :3].double().numpy() @ np.linalg.solve(K, [u, v, 1.0]),
-                                     FRAME)
+        ray = camera.cam_to_world[:3, :3].double().numpy() @ np.linalg.solve(K, [u, v, 1.0])
+        expected = viewer.scene.pick(centre, ray, FRAME)
         assert expected is not None
         for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
             browser.call("Input.dispatchMouseEvent", type=kind, x=float(u), y=float(v), button="left", clickCount=1)
