@@ -161,28 +161,86 @@ class SceneModel(nn.Module):
         """World-space Gaussians of every node present at ``t`` (culled to ``camera`` when
         the method says so and a camera is given), the node slices of the concatenation and
         each node's output. Nodes named in ``hidden`` are left out."""
-        parts, slices, outputs, start = [], [], {}, 0
+        parts = []
         for name, node in self.gaussian_nodes().items():
             if name in hidden:
                 continue
-            out = node.gaussians_at(t, camera, step)
+            parts.append((name, node.gaussians_at(t, camera, step)))
+        return self.assemble(parts, camera)
+
+    def assemble(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Optional[Camera]
+                 ) -> tuple[Optional[Gaussians], list[NodeSlice], dict[str, NodeOutput]]:
+        """Concatenate node outputs (name, output or None) into one set, each culled to
+        ``camera`` when the method says so: (Gaussians or None, slices, outputs by name).
+        :meth:`gather` uses it for the recorded scene; editing tools pass their own parts
+        (e.g. actors in edited states, actors of other runs)."""
+        gs, slices, outputs, start = [], [], {}, 0
+        for name, out in parts:
             if out is None:
                 continue
             outputs[name] = out
             g, rows = out.gaussians, out.rows
             if self.method.cull_to_view and camera is not None and len(g):
                 g, rows = cull_to_frustum(g, rows, camera)
-            parts.append(g)
+            gs.append(g)
             slices.append(NodeSlice(name, start, start + len(g), rows))
             start += len(g)
-        return (Gaussians.cat(parts) if parts else None), slices, outputs
+        return (Gaussians.cat(gs) if gs else None), slices, outputs
 
     def render(self, camera: Camera, t: SceneTime, sh_degree: int = 3, step: Optional[int] = None,
                hidden: frozenset[str] = frozenset()) -> RenderResult:
         """Render the scene at moment ``t`` through ``camera``. ``step`` is the training
         step (None: the trained model, e.g. for evaluation and rendering); nodes in
         ``hidden`` are not drawn (e.g. the sky, for renders of the Gaussians alone)."""
+        if self.fast_inference():
+            parts = [(name, node.gaussians_at(t, camera, step)) for name, node in self.gaussian_nodes().items()
+                     if name not in hidden]
+            return self.render_parts(parts, camera, t, sh_degree, hidden)
         g, slices, outputs = self.gather(camera, t, step, hidden)
+        return self.composite(g, slices, outputs, camera, t, sh_degree, hidden)
+
+    def fast_inference(self) -> bool:
+        """True when renders take the inference path: autograd is off and the rasterizer
+        renders raw Gaussians itself (``rasterize_gaussians``: activation, SH colour and view
+        culling natively, nothing kept for a backward pass). Same pixels as the training path
+        up to float rounding (tests: plugins/cpu-rasterizer, tests/test_inference_render.py)."""
+        return not torch.is_grad_enabled() and hasattr(self.rasterizer, "rasterize_gaussians")
+
+    def render_parts(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Camera, t: SceneTime,
+                     sh_degree: int = 3, hidden: frozenset[str] = frozenset()) -> RenderResult:
+        """Render node outputs (name, output or None), e.g. actors in edited states: the
+        inference path when :meth:`fast_inference`, else :meth:`assemble` + :meth:`composite`."""
+        if not self.fast_inference():
+            g, slices, outputs = self.assemble(parts, camera)
+            return self.composite(g, slices, outputs, camera, t, sh_degree, hidden)
+        gs, slices, outputs, start = [], [], {}, 0
+        for name, out in parts:
+            if out is None or len(out.gaussians) == 0:
+                continue
+            outputs[name] = out
+            gs.append(out.gaussians)
+            slices.append(NodeSlice(name, start, start + len(out.gaussians), out.rows))
+            start += len(out.gaussians)
+        if not gs:
+            return self.composite(None, slices, outputs, camera, t, sh_degree, hidden)
+        env = {n: m for n, m in self.environment_nodes().items() if n not in hidden}
+        background = None if env else self._background
+        # colours use bands up to min(sh_degree, the largest degree present), as Gaussians.cat + colors do
+        degree = min(sh_degree, max(g.sh_degree for g in gs))
+        # the rasterizer culls to the view itself (cull_to_view): num_gaussians counts those kept
+        out, kept = self.rasterizer.rasterize_gaussians(gs, camera, degree, RasterSettings(background=background),
+                                                        cull=self.method.cull_to_view)
+        rgb = out.rgb
+        for node in env.values():
+            rgb = rgb + (1.0 - out.alpha) * node.render_environment(camera, t)
+        return RenderResult(rgb, out.depth, out.alpha, out.absgrad2d, out.radii, slices, kept, outputs)
+
+    def composite(self, g: Optional[Gaussians], slices: list[NodeSlice], outputs: dict[str, NodeOutput],
+                  camera: Camera, t: SceneTime, sh_degree: int = 3, hidden: frozenset[str] = frozenset()
+                  ) -> RenderResult:
+        """Rasterize gathered Gaussians ``g`` (:meth:`gather` / :meth:`assemble`) through
+        ``camera`` with SH bands up to ``sh_degree`` and composite the environment nodes not
+        in ``hidden`` (at moment ``t``) under them."""
         env = {n: m for n, m in self.environment_nodes().items() if n not in hidden}
         background = None if env else self._background
         W, H = camera.width, camera.height

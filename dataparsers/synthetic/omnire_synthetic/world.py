@@ -11,15 +11,12 @@ from typing import Optional
 
 import numpy as np
 
-from omnire.geometry import axis_angle_to_rotmat
 from omnire_body import lbs
 from omnire_body.lbs import LBSOutput
+from omnire_body.motion import CANON_TO_BOX, gait_pose
 from omnire_body.template import BodyTemplate
 from omnire_synthetic.meshes import Mesh, box, ellipsoid, prism, quad, rigid, rot_x, rot_z
 from omnire_synthetic.textures import FACADES, MAT, PAINTS, PANTS, SHIRTS
-
-# SMPL canonical (x left, y up, z forward) -> box frame (x forward, y left, z up).
-CANON_TO_BOX = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -334,33 +331,6 @@ def _bar(a: np.ndarray, b: np.ndarray, radius: float, mat: int) -> Mesh:
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return prism(radius, L, mat, n=6, uv_size=(0.3, 0.3)).transformed(rigid(np.stack([x, y, z], 1), a))
-
-
-def gait_pose(phase: np.ndarray) -> np.ndarray:
-    """Walking body pose (F, 23, 3, 3) from a gait phase (F,) in radians, SMPL joint order.
-
-    In SMPL's canonical frame (x left, y up, z forward) a rotation about +x by a positive
-    angle swings a downward limb backwards.
-    """
-    F = len(phase)
-    aa = np.zeros((F, 24, 3))
-    s = np.sin(phase)
-    aa[:, 1, 0] = -0.45 * s  # left hip forward when s > 0
-    aa[:, 2, 0] = 0.45 * s
-    aa[:, 4, 0] = 0.08 + 0.65 * np.clip(np.cos(phase), 0, None) ** 1.5  # left knee bends in swing
-    aa[:, 5, 0] = 0.08 + 0.65 * np.clip(-np.cos(phase), 0, None) ** 1.5
-    aa[:, 7, 0] = -0.15 * s  # ankles follow a little
-    aa[:, 8, 0] = 0.15 * s
-    aa[:, 16, 0] = 0.35 * s  # arms swing against the legs
-    aa[:, 17, 0] = -0.35 * s
-    aa[:, 16, 2] = -0.75  # lower the A-pose arms towards the body
-    aa[:, 17, 2] = 0.75
-    aa[:, 18, 0] = -0.3 - 0.2 * np.clip(-s, 0, None)  # elbows flex forward
-    aa[:, 19, 0] = -0.3 - 0.2 * np.clip(s, 0, None)
-    aa[:, 3, 1] = 0.08 * s  # a little torso twist
-    aa[:, 9, 1] = -0.05 * s
-    R = axis_angle_to_rotmat(aa)  # (F, 24, 3, 3)
-    return R[:, 1:]
 
 
 def body_global_orient(yaw: np.ndarray) -> np.ndarray:

@@ -13,6 +13,7 @@ from typing import Optional
 import torch
 
 from omnire.camera import Camera
+from omnire.gaussians import Gaussians
 from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
 
 from ._build import load_extension
@@ -111,3 +112,47 @@ class CpuRasterizer:
             rgb=rgb, depth=depth[..., None], alpha=alpha[..., None], radii=radii, means2d=means2d,
             absgrad2d=absgrad,
         )
+
+    def rasterize_gaussians(self, parts: list[Gaussians], camera: Camera, sh_degree: int,
+                            settings: RasterSettings = RasterSettings(), cull: bool = True
+                            ) -> tuple[RenderOutput, int]:
+        """Inference-only rendering of Gaussians in parts (node outputs, not concatenated):
+        SH colours (bands up to ``sh_degree``, seen from the camera centre) evaluated
+        natively and only for the Gaussians that are drawn, Gaussians that cannot reach the
+        image rejected before their covariance is built, nothing kept for a backward pass.
+        Same pixels as :meth:`rasterize` on the activated, concatenated Gaussians with colours
+        from :meth:`Gaussians.colors` (alphas bit-identical; colours up to float rounding);
+        outputs index the parts in order. ``cull``: reject Gaussians that cannot reach the
+        image before building their covariance. Returns the output and the number of
+        Gaussians not culled. No gradients: call without autograd."""
+        if torch.is_grad_enabled() and any(p.means.requires_grad for p in parts):
+            raise RuntimeError("rasterize_gaussians is inference-only: call it under torch.no_grad()")
+        if camera.device.type != "cpu" or any(p.means.device.type != "cpu" for p in parts):
+            raise RasterInputError("the cpu rasterizer needs CPU tensors")
+
+        def prep(t: torch.Tensor) -> torch.Tensor:
+            return t.detach().to(torch.float32).contiguous()
+
+        cols = {k: [prep(getattr(p, k)) for p in parts] for k in ("means", "quats", "sh0", "shN")}
+        # activations by torch, as the training path does them: identical alphas
+        cols["scales"] = [prep(p.activated_scales) for p in parts]
+        cols["opacities"] = [prep(p.activated_opacities) for p in parts]
+        for name, ts in cols.items():
+            for t in ts:
+                if name in ("means", "scales") and (t.ndim != 2 or t.shape[1] != 3):
+                    raise RasterInputError(f"{name}: shape {tuple(t.shape)}, expected (N, 3)")
+        nthreads = self.num_threads or torch.get_num_threads()
+        acc, dn, alpha, radii, means2d, bad, kept = _ext().forward_gaussians(
+            cols["means"], cols["quats"], cols["scales"], cols["opacities"], cols["sh0"], cols["shN"], int(sh_degree),
+            camera.center.detach(), camera.world_to_cam.detach().to(torch.float64).contiguous(),
+            camera.K.detach().to(torch.float64).contiguous(), int(camera.width), int(camera.height),
+            float(settings.near), float(settings.far), float(settings.eps2d), bool(cull), int(nthreads))
+        if int(bad[0]) >= 0:
+            raise RasterInputError(f"Gaussian row {int(bad[0])} (of the concatenated parts) has non-finite parameters; "
+                                   "refusing to render a NaN image")
+        rgb = acc
+        if settings.background is not None:
+            rgb = acc + (1.0 - alpha)[..., None] * settings.background.to(acc)
+        depth = dn / alpha.clamp_min(1e-10)
+        return RenderOutput(rgb=rgb, depth=depth[..., None], alpha=alpha[..., None], radii=radii, means2d=means2d,
+                            absgrad2d=torch.zeros(len(radii), 2)), int(kept[0])

@@ -8,7 +8,8 @@
 // scales and unnormalised quaternions well conditioned whatever the image dtype.
 //
 // Per-Gaussian record written by the forward and read by the pixel kernels (REC values):
-//   [mean2d x, mean2d y, conic a, conic b, conic c, opacity, depth z, ext x, ext y]
+//   [mean2d x, mean2d y, conic a, conic b, conic c, opacity, depth z, ext x, ext y, power floor]
+// power floor = ln(1 / (255 opacity)) - 0.01: pixels with a lower exponent have alpha < 1/255.
 // conic = inverse 2D covariance [[a, b], [b, c]]; ext = half-extent (pixels) of the ellipse
 // outside which alpha < 1/255 for sure, so skipping those pixels changes nothing.
 #include <torch/extension.h>
@@ -27,7 +28,7 @@ namespace {
 
 constexpr int TILE = 16;
 constexpr int TPIX = TILE * TILE;
-constexpr int REC = 9;
+constexpr int REC = 10;
 constexpr double ALPHA_MIN = 1.0 / 255.0;
 constexpr double ALPHA_MAX = 0.99;
 constexpr double T_MIN = 1e-4;
@@ -284,6 +285,7 @@ void project_all(int64_t N, const S* means, const S* quats, const S* scales, con
     g[2] = S(p.conic[0]); g[3] = S(p.conic[1]); g[4] = S(p.conic[2]);
     g[5] = S(o); g[6] = S(p.t[2]);
     g[7] = S(std::min(ex, 1e9)); g[8] = S(std::min(ey, 1e9));
+    g[9] = S(-0.5 * tq - 0.01);
   }
 }
 
@@ -434,6 +436,10 @@ void render_forward(const Camera& cam, int D, int tilesX, int tilesY, const S* r
         const V mx = P::set1(g[0]), my = P::set1(g[1]);
         const V ca = P::set1(g[2]), cb = P::set1(g[3]), cc = P::set1(g[4]);
         const V op = P::set1(g[5]), zz = P::set1(g[6]);
+        // A lane group whose every pixel has power below g[9] (0.01 below ln(1 / (255 o)), the
+        // least power with alpha >= 1/255; 1% in alpha, far above the rounding of exp) fails
+        // the alpha test for sure: skipped before the exp. Changes no pixel.
+        const V pthr = P::set1(g[9]);
         for (int r = sp.r0; r < sp.r1; ++r) {
           const V dy = P::set1(S(y0 + r) + S(0.5)) - my;
           const V cdy = cb * dy, hdy2 = mhalf * cc * dy * dy;
@@ -443,6 +449,7 @@ void render_forward(const Camera& cam, int D, int tilesX, int tilesY, const S* r
             if (!P::any(m)) continue;
             const V dx = P::set1(S(x0 + vg * L) + S(0.5)) + lane - mx;
             const V power = mhalf * ca * dx * dx - cdy * dx + hdy2;
+            if (!P::any(P::mand(m, P::ge(power, pthr)))) continue;
             const V al = P::vmin(amax, op * P::exp(power));
             m = P::mand(m, P::mand(P::ge(al, amin), P::le(power, zero)));
             if (!P::any(m)) continue;
@@ -780,6 +787,179 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means, const at::Tensor&
   return {g_means, g_quats, g_scales, g_opac, g_colors, absgrad};
 }
 
+// ---------------------------------------------------------------------------------------
+// Inference forward (float32) from Gaussians in groups (one per scene-graph node output, so
+// nothing is concatenated): activated scales and opacities (by the caller, with torch's
+// exp / sigmoid, so alphas are bit-identical to the training path's), quats as given
+// (normalised in projection), SH coefficients whose colour from the camera centre is
+// evaluated only for the Gaussians that are drawn; Gaussians that cannot reach the image are
+// rejected before their covariance is built; then the same binning and compositing as
+// forward_impl. Nothing is kept for a backward pass. Colours equal the training path's (torch
+// SH) up to float rounding of the view-direction normalisation.
+constexpr float SH_C0 = 0.28209479177387814f, SH_C1 = 0.4886025119029199f;
+constexpr float SH_C2[5] = {1.0925484305920792f, -1.0925484305920792f, 0.31539156525252005f, -1.0925484305920792f,
+                            0.5462742152960396f};
+constexpr float SH_C3[7] = {-0.5900435899266435f, 2.890611442640554f, -0.4570457994644658f, 0.3731763325901154f,
+                            -0.4570457994644658f, 1.445305721320277f, -0.5900435899266435f};
+
+// RGB of one Gaussian: sh0 (3,), shN (K-1, 3) row-major, bands up to ``degree``, unit view
+// direction d; same terms in the same order as omnire.gaussians.eval_sh, then +0.5, >= 0.
+inline void sh_color(const float* sh0, const float* shN, int degree, const float d[3], float* out) {
+  const float x = d[0], y = d[1], z = d[2];
+  for (int c = 0; c < 3; ++c) {
+    float v = SH_C0 * sh0[c];
+    if (degree >= 1) {
+      v = v - SH_C1 * y * shN[0 * 3 + c] + SH_C1 * z * shN[1 * 3 + c] - SH_C1 * x * shN[2 * 3 + c];
+    }
+    if (degree >= 2) {
+      const float xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+      v = v + SH_C2[0] * xy * shN[3 * 3 + c] + SH_C2[1] * yz * shN[4 * 3 + c] +
+          SH_C2[2] * (2 * zz - xx - yy) * shN[5 * 3 + c] + SH_C2[3] * xz * shN[6 * 3 + c] +
+          SH_C2[4] * (xx - yy) * shN[7 * 3 + c];
+      if (degree >= 3) {
+        v = v + SH_C3[0] * y * (3 * xx - yy) * shN[8 * 3 + c] + SH_C3[1] * xy * z * shN[9 * 3 + c] +
+            SH_C3[2] * y * (4 * zz - xx - yy) * shN[10 * 3 + c] +
+            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * shN[11 * 3 + c] +
+            SH_C3[4] * x * (4 * zz - xx - yy) * shN[12 * 3 + c] + SH_C3[5] * z * (xx - yy) * shN[13 * 3 + c] +
+            SH_C3[6] * x * (xx - 3 * yy) * shN[14 * 3 + c];
+      }
+    }
+    out[c] = std::max(v + 0.5f, 0.0f);
+  }
+}
+
+// True when a Gaussian (world mean, largest scale) cannot reach the image, decided
+// without its covariance: out of the depth range, or its projected centre farther outside
+// the image than the 3-sigma radius project_all would give it. That radius is
+// 3 sqrt(lambda_max) with lambda_max <= |J|_F^2 s_max^2 + eps2d (J the clamped projection
+// Jacobian, |R_view| = 1), plus 4 px (project_all's radius exceeds 3 sqrt(lambda_max) by up
+// to 1.7 px through its eigenvalue floor and 1 px through ceil); such Gaussians get an empty
+// tile rect in project_all, so skipping them changes nothing.
+inline bool off_screen(const float* mean, float max_scale, const Camera& cam, double near, double far,
+                       double eps2d) {
+  const double m[3] = {double(mean[0]), double(mean[1]), double(mean[2])};
+  double t[3];
+  for (int i = 0; i < 3; ++i)
+    t[i] = cam.R[i * 3] * m[0] + cam.R[i * 3 + 1] * m[1] + cam.R[i * 3 + 2] * m[2] + cam.t[i];
+  const double z = t[2];
+  if (!(z > near && z < far && z > 0.0)) return true;
+  const double mx = cam.fx * t[0] / z + cam.cx, my = cam.fy * t[1] / z + cam.cy;
+  if (!std::isfinite(mx) || !std::isfinite(my)) return true;
+  const double u = std::min(cam.lim_xp, std::max(-cam.lim_xn, t[0] / z));
+  const double v = std::min(cam.lim_yp, std::max(-cam.lim_yn, t[1] / z));
+  const double j2 = (cam.fx * cam.fx * (1.0 + u * u) + cam.fy * cam.fy * (1.0 + v * v)) / (z * z);
+  const double smax = double(max_scale);
+  const double r = 3.0 * std::sqrt(j2 * smax * smax + eps2d) + 4.0;
+  if (!std::isfinite(r)) return false;  // let the full projection decide
+  return mx + r < 0.0 || my + r < 0.0 || mx - r > cam.W || my - r > cam.H;
+}
+
+std::vector<at::Tensor> forward_gaussians_impl(const std::vector<at::Tensor>& means, const std::vector<at::Tensor>& quats,
+                                               const std::vector<at::Tensor>& scales,
+                                               const std::vector<at::Tensor>& opacities, const std::vector<at::Tensor>& sh0,
+                                               const std::vector<at::Tensor>& shN, int sh_degree, const float center[3],
+                                               const Camera& cam, double near, double far, double eps2d, bool cull,
+                                               int nthreads) {
+  const size_t G = means.size();
+  std::vector<int64_t> start(G + 1, 0);
+  for (size_t g = 0; g < G; ++g) start[g + 1] = start[g] + means[g].size(0);
+  const int64_t N = start[G];
+  const int W = cam.W, H = cam.H;
+  const int tilesX = (W + TILE - 1) / TILE, tilesY = (H + TILE - 1) / TILE;
+  auto opts = at::TensorOptions().dtype(at::kFloat);
+  auto rec = at::empty({N, REC}, opts);
+  auto colors = at::empty({N, 3}, opts);
+  auto means2d = at::empty({N, 2}, opts);
+  auto radii = at::empty({N}, at::kInt);
+  auto rect = at::empty({N, 4}, at::kInt);
+  float* recp = rec.data_ptr<float>();
+  float* colp = colors.data_ptr<float>();
+  float* m2p = means2d.data_ptr<float>();
+  int32_t* radp = radii.data_ptr<int32_t>();
+  int32_t* rectp = rect.data_ptr<int32_t>();
+  std::vector<float> depth_f(N);
+  int64_t first_bad = -1;  // a non-finite parameter refuses the render (caller raises)
+  int64_t rejected = 0;     // Gaussians culled before their covariance (cull = true)
+  for (size_t g = 0; g < G; ++g) {
+    const int64_t n = means[g].size(0), off = start[g];
+    const int K1 = int(shN[g].size(1));  // extra SH bases of this group: (deg + 1)^2 - 1
+    int deg = 0;
+    while ((deg + 1) * (deg + 1) - 1 < K1) ++deg;
+    deg = std::min(deg, sh_degree);
+    const float *mp = means[g].data_ptr<float>(), *qp = quats[g].data_ptr<float>();
+    const float *sp = scales[g].data_ptr<float>(), *op = opacities[g].data_ptr<float>();
+    const float *c0p = sh0[g].data_ptr<float>(), *cNp = shN[g].data_ptr<float>();
+    int64_t bad = std::numeric_limits<int64_t>::max();
+#pragma omp parallel for schedule(static) num_threads(nthreads) reduction(min : bad) reduction(+ : rejected)
+    for (int64_t i = 0; i < n; ++i) {
+      const int64_t k = off + i;
+      bool finite = std::isfinite(op[i]);
+      for (int j = 0; j < 3; ++j) finite = finite && std::isfinite(mp[3 * i + j]) && std::isfinite(sp[3 * i + j]);
+      for (int j = 0; j < 4; ++j) finite = finite && std::isfinite(qp[4 * i + j]);
+      if (!finite) bad = std::min(bad, k);
+      radp[k] = 0;
+      float* g9 = recp + REC * k;
+      for (int j = 0; j < REC; ++j) g9[j] = 0.0f;
+      for (int j = 0; j < 4; ++j) rectp[4 * k + j] = 0;
+      m2p[2 * k] = m2p[2 * k + 1] = 0.0f;
+      depth_f[k] = 0.0f;
+      if (cull && finite &&
+          off_screen(mp + 3 * i, std::max({sp[3 * i], sp[3 * i + 1], sp[3 * i + 2]}), cam, near, far, eps2d)) {
+        ++rejected;
+        continue;
+      }
+      const float o = op[i];
+      Proj p;
+      project_one(mp + 3 * i, qp + 4 * i, sp + 3 * i, cam, near, far, eps2d, p);
+      m2p[2 * k] = p.in_depth ? float(p.m2d[0]) : 0.0f;
+      m2p[2 * k + 1] = p.in_depth ? float(p.m2d[1]) : 0.0f;
+      if (!p.ok) continue;
+      const double od = double(o);
+      const double mid = 0.5 * (p.cov[0] + p.cov[2]);
+      const double lam = mid + std::sqrt(std::max(0.1, mid * mid - p.det));
+      double r = std::ceil(3.0 * std::sqrt(lam));
+      if (!std::isfinite(r)) continue;
+      r = std::min(r, 1e9);
+      const double mx = p.m2d[0], my = p.m2d[1];
+      const int x0 = int(std::min<double>(tilesX, std::max(0.0, std::floor((mx - r) / TILE))));
+      const int x1 = int(std::min<double>(tilesX, std::max(0.0, std::ceil((mx + r) / TILE))));
+      const int y0 = int(std::min<double>(tilesY, std::max(0.0, std::floor((my - r) / TILE))));
+      const int y1 = int(std::min<double>(tilesY, std::max(0.0, std::ceil((my + r) / TILE))));
+      if (x0 >= x1 || y0 >= y1) continue;
+      radp[k] = int32_t(r);
+      rectp[4 * k] = x0; rectp[4 * k + 1] = y0; rectp[4 * k + 2] = x1; rectp[4 * k + 3] = y1;
+      const double tq = 2.0 * std::log(od / ALPHA_MIN);
+      const double ex = std::sqrt(std::max(0.0, tq) * p.cov[0]) * 1.02 + 0.5;
+      const double ey = std::sqrt(std::max(0.0, tq) * p.cov[2]) * 1.02 + 0.5;
+      g9[0] = float(mx); g9[1] = float(my);
+      g9[2] = float(p.conic[0]); g9[3] = float(p.conic[1]); g9[4] = float(p.conic[2]);
+      g9[5] = o; g9[6] = float(p.t[2]);
+      g9[7] = float(std::min(ex, 1e9)); g9[8] = float(std::min(ey, 1e9));
+      g9[9] = float(-0.5 * tq - 0.01);
+      depth_f[k] = g9[6];
+      // view direction from the camera centre, normalised as omnire.gaussians.Gaussians.colors
+      float d[3] = {mp[3 * i] - center[0], mp[3 * i + 1] - center[1], mp[3 * i + 2] - center[2]};
+      const float nrm = std::max(std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]), 1e-8f);
+      for (int j = 0; j < 3; ++j) d[j] = d[j] / nrm;
+      sh_color(c0p + 3 * i, cNp + int64_t(3) * K1 * i, deg, d, colp + 3 * k);
+      if (!(std::isfinite(colp[3 * k]) && std::isfinite(colp[3 * k + 1]) && std::isfinite(colp[3 * k + 2])))
+        bad = std::min(bad, k);
+    }
+    if (bad != std::numeric_limits<int64_t>::max() && first_bad < 0) first_bad = bad;
+  }
+  if (first_bad >= 0) {  // nothing rendered: the caller names the row
+    auto e = at::zeros({0}, opts);
+    return {e, e, e, at::zeros({0}, at::kInt), e, at::full({1}, first_bad, at::kLong), at::zeros({1}, at::kLong)};
+  }
+  auto [offsets, ids] = bin_gaussians(N, depth_f.data(), radp, rectp, tilesX, tilesY, nthreads);
+  auto acc = at::empty({H, W, 3}, opts);
+  auto dn = at::empty({H, W}, opts);
+  auto aa = at::empty({H, W}, opts);
+  render_forward<float>(cam, 3, tilesX, tilesY, recp, colp, offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
+                        acc.data_ptr<float>(), dn.data_ptr<float>(), aa.data_ptr<float>(), nthreads);
+  return {acc, dn, aa, radii, means2d, at::full({1}, -1, at::kLong), at::full({1}, N - rejected, at::kLong)};
+}
+
 void check_cpu_contig(const at::Tensor& t, at::ScalarType st, const char* name) {
   TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
   TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
@@ -802,6 +982,37 @@ std::vector<at::Tensor> raster_forward(at::Tensor means, at::Tensor quats, at::T
   const int nt = clamp_threads(nthreads);
   if (st == at::kFloat) return forward_impl<float>(means, quats, scales, opac, colors, cam, near, far, eps2d, nt);
   return forward_impl<double>(means, quats, scales, opac, colors, cam, near, far, eps2d, nt);
+}
+
+// Inference forward from Gaussians in groups (see forward_gaussians_impl): means (N_g,3),
+// quats (N_g,4), scales (N_g,3), opacities (N_g,) (both activated), sh0 (N_g,1,3), shN (N_g,K_g,3),
+// all float32 contiguous. Returns [rgb accumulation (H,W,3), depth numerator (H,W),
+// alpha (H,W), radii (N,) int32, means2d (N,2), first non-finite row (1,) int64 or -1 (then
+// nothing else is computed), Gaussians not culled before projection (1,) int64] over the
+// groups in order. ``cull``: reject Gaussians that cannot reach the image early.
+std::vector<at::Tensor> raster_forward_gaussians(std::vector<at::Tensor> means, std::vector<at::Tensor> quats,
+                                                 std::vector<at::Tensor> scales, std::vector<at::Tensor> opacities,
+                                                 std::vector<at::Tensor> sh0, std::vector<at::Tensor> shN,
+                                                 int64_t sh_degree, at::Tensor center, at::Tensor viewmat, at::Tensor K,
+                                                 int64_t width, int64_t height, double near, double far, double eps2d,
+                                                 bool cull, int64_t nthreads) {
+  const size_t G = means.size();
+  TORCH_CHECK(quats.size() == G && scales.size() == G && opacities.size() == G && sh0.size() == G && shN.size() == G,
+              "every parameter needs one tensor per group");
+  for (size_t g = 0; g < G; ++g) {
+    const int64_t n = means[g].size(0);
+    for (auto [t, name] : {std::pair{&means[g], "means"}, {&quats[g], "quats"}, {&scales[g], "scales"},
+                           {&opacities[g], "opacities"}, {&sh0[g], "sh0"}, {&shN[g], "shN"}}) {
+      check_cpu_contig(*t, at::kFloat, name);
+      TORCH_CHECK(t->size(0) == n, name, " of group ", g, " has ", t->size(0), " rows, expected ", n);
+    }
+    TORCH_CHECK(shN[g].dim() == 3 && shN[g].size(2) == 3 && sh0[g].numel() == 3 * n, "sh0 (N,1,3) / shN (N,K,3)");
+  }
+  auto c = center.detach().to(at::kCPU, at::kFloat).contiguous();
+  const float ctr[3] = {c.data_ptr<float>()[0], c.data_ptr<float>()[1], c.data_ptr<float>()[2]};
+  const Camera cam = make_camera(viewmat, K, int(width), int(height));
+  return forward_gaussians_impl(means, quats, scales, opacities, sh0, shN, int(sh_degree), ctr, cam, near, far, eps2d,
+                                cull, clamp_threads(nthreads));
 }
 
 // Returns [g_means (N,3), g_quats (N,4), g_scales (N,3), g_opacities (N,), g_colors (N,D), absgrad2d (N,2)].
@@ -828,4 +1039,5 @@ std::vector<at::Tensor> raster_backward(at::Tensor means, at::Tensor quats, at::
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &raster_forward, "Gaussian rasterization forward (CPU)");
   m.def("backward", &raster_backward, "Gaussian rasterization backward (CPU)");
+  m.def("forward_gaussians", &raster_forward_gaussians, "inference forward from raw Gaussian groups (CPU)");
 }

@@ -1,0 +1,173 @@
+"""``omnire bench render RUN [RUN ...]``: rendering speed of trained runs.
+
+Each run is measured in its own subprocess (so its peak resident memory is its own): it is
+loaded with ``Reconstruction.from_run``, then its recorded views (held-out frames, topped up
+with training frames to ``--views``, evenly spread) are rendered at every ``--resolutions``
+size through the run's own rasterizer, after ``--warmup`` untimed renders. Reported per run
+and size: frames per second (views / total render time), the median time per frame, the
+Gaussians in the scene, and the process's peak resident memory.
+
+``--save-images DIR`` keeps every render (float32 .npy) and ``--compare-to DIR`` reports the
+largest absolute pixel difference against such a set (same runs, views and sizes): a
+speed-up must not change the pixels.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import tyro
+
+from omnire.api import ConfigError, atomic_write_text
+
+
+@dataclasses.dataclass
+class BenchRenderArgs:
+    """Frames per second and peak memory when rendering trained runs."""
+
+    runs: tyro.conf.Positional[tuple[Path, ...]]
+    """Run directories (e.g. trained 3dgs, streetgs and omnire runs of one scene)."""
+    resolutions: tuple[str, ...] = ("480x270", "960x540")
+    """Image sizes WIDTHxHEIGHT (the cameras' intrinsics are scaled)."""
+    views: int = 12
+    """Views rendered per run and size (held-out frames first, then training frames)."""
+    warmup: int = 2
+    """Untimed renders before timing."""
+    threads: int = 2
+    """Torch / rasterizer threads."""
+    output: Path = Path("outputs/bench/render")
+    """Where results.json and results.md are written."""
+    save_images: Optional[Path] = None
+    """Keep every render as float32 .npy under this directory (a reference for --compare-to)."""
+    compare_to: Optional[Path] = None
+    """Report the largest absolute pixel difference against renders saved by --save-images."""
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--resolutions {text!r}: expected WIDTHxHEIGHT, e.g. 480x270") from None
+    if w <= 0 or h <= 0:
+        raise ConfigError(f"--resolutions {text!r}: sizes must be positive")
+    return w, h
+
+
+def pick_views(scene, count: int) -> list:
+    """Up to ``count`` recorded views: held-out frames first, then training frames, each
+    group evenly spread over the log."""
+    test, train = scene.views(scene.test_frames), scene.views(scene.train_frames)
+    chosen = test[:: max(1, len(test) // max(1, count))][:count] if test else []
+    if len(chosen) < count and train:
+        rest = count - len(chosen)
+        idx = np.linspace(0, len(train) - 1, min(rest, len(train))).round().astype(int)
+        chosen += [train[i] for i in idx]
+    return chosen
+
+
+def measure(run: Path, sizes: list[tuple[int, int]], views: int, warmup: int, threads: int,
+            save: Optional[Path], compare: Optional[Path]) -> dict:
+    """Render ``run`` at every size (in this process); see the module docstring."""
+    import torch
+
+    from omnire.api import Reconstruction
+    from omnire.plugins import load_plugins
+
+    torch.set_num_threads(threads)
+    recon = Reconstruction.from_run(run, load_plugins())
+    chosen = pick_views(recon.scene, views)
+    out = {"run": str(run), "method": recon.run_info.method, "rasterizer": recon.model.rasterizer.name,
+           "gaussians": recon.num_gaussians(), "step": recon.step, "views": len(chosen), "sizes": {}}
+    key = run.resolve().name
+    with torch.no_grad():
+        for w, h in sizes:
+            cams = [(v, recon.camera(v).resized(w, h)) for v in chosen]
+            for v, cam in cams[:warmup]:
+                recon.render(cam, recon.time(v.frame))
+            times, diff = [], 0.0
+            for v, cam in cams:
+                t0 = time.perf_counter()
+                rgb = recon.render(cam, recon.time(v.frame)).rgb
+                times.append(time.perf_counter() - t0)
+                name = f"{key}/{w}x{h}/{recon.scene.cameras[v.camera].name}_{v.frame:04d}.npy"
+                img = rgb.detach().cpu().numpy().astype(np.float32)
+                if save is not None:
+                    (save / name).parent.mkdir(parents=True, exist_ok=True)
+                    np.save(save / name, img)
+                if compare is not None:
+                    ref = compare / name
+                    if not ref.is_file():
+                        raise ConfigError(f"--compare-to: {ref} missing (save it first with --save-images)")
+                    diff = max(diff, float(np.abs(np.load(ref) - img).max()))
+            out["sizes"][f"{w}x{h}"] = {"fps": len(times) / sum(times), "median_ms": 1000 * float(np.median(times)),
+                                       "max_abs_diff": diff if compare is not None else None}
+    out["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return out
+
+
+def format_table(results: list[dict]) -> str:
+    rows = ["| Run | Method | Gaussians | Size | Views | fps | ms / frame | peak MB | max abs diff |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        for size, s in r["sizes"].items():
+            diff = "-" if s["max_abs_diff"] is None else f"{s['max_abs_diff']:.2e}"
+            rows.append(f"| {Path(r['run']).name} | {r['method']} | {r['gaussians']} | {size} | {r['views']} | "
+                        f"{s['fps']:.2f} | {s['median_ms']:.1f} | {r['peak_mb']:.0f} | {diff} |")
+    return "\n".join(rows) + "\n"
+
+
+def main(argv: list[str], plugins=None) -> int:
+    from omnire.ui import output_console
+
+    args = tyro.cli(BenchRenderArgs, args=argv, prog="omnire bench render")
+    sizes = [parse_size(s) for s in args.resolutions]
+    if not args.runs:
+        raise ConfigError("give at least one run directory")
+    for run in args.runs:
+        if not (run / "run.json").is_file():
+            raise ConfigError(f"{run}: not a run directory (no run.json)")
+    if args.views <= 0 or args.warmup < 0 or args.threads <= 0:
+        raise ConfigError("--views and --threads must be > 0, --warmup >= 0")
+    console = output_console()
+    results = []
+    for run in args.runs:
+        with tempfile.TemporaryDirectory() as tmp:
+            result_file = Path(tmp) / "result.json"
+            spec = {"run": str(run), "sizes": sizes, "views": args.views, "warmup": args.warmup,
+                    "threads": args.threads, "save": str(args.save_images) if args.save_images else None,
+                    "compare": str(args.compare_to) if args.compare_to else None, "result": str(result_file)}
+            env = dict(os.environ, OMP_NUM_THREADS=str(args.threads))
+            proc = subprocess.run([sys.executable, "-m", "omnire_sim.bench", json.dumps(spec)], env=env,
+                                  capture_output=True, text=True)
+            if proc.returncode != 0 or not result_file.is_file():
+                tail = "\n".join((proc.stderr or proc.stdout).strip().splitlines()[-5:])
+                raise ConfigError(f"{run}: rendering benchmark failed:\n{tail}")
+            results.append(json.loads(result_file.read_text()))
+        console.print(f"{run}: " + ", ".join(f"{k} {v['fps']:.2f} fps" for k, v in results[-1]["sizes"].items()))
+    args.output.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.output / "results.json", json.dumps(results, indent=1) + "\n")
+    table = format_table(results)
+    atomic_write_text(args.output / "results.md", table)
+    console.print(table)
+    return 0
+
+
+def _worker(spec_json: str) -> None:
+    spec = json.loads(spec_json)
+    result = measure(Path(spec["run"]), [tuple(s) for s in spec["sizes"]], spec["views"], spec["warmup"],
+                     spec["threads"], Path(spec["save"]) if spec["save"] else None,
+                     Path(spec["compare"]) if spec["compare"] else None)
+    atomic_write_text(spec["result"], json.dumps(result))
+
+
+if __name__ == "__main__":
+    _worker(sys.argv[1])
