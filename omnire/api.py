@@ -6,7 +6,7 @@ estimators, scene writers) import from here only; docs/plugins.md shows each in 
 from omnire.camera import Camera, in_frustum
 from omnire.config import InstantiateConfig
 from omnire.data.dataparser import Dataparser, DataparserConfig, LogDataparserConfig, first_pose_world, frame_range
-from omnire.data.images import ImageCache, ImageReadError
+from omnire.data.images import ImageCache, ImageReadError, image_size
 from omnire.data.scene import (
     CATEGORIES,
     ActorTrack,
@@ -78,6 +78,7 @@ from omnire.registry import (
     SceneWriterSpec,
     TrainObserverSpec,
 )
+from omnire.rundir import CheckpointError, RunDirectory, RunDirectoryError
 from omnire.runconfig import TrainConfig, TrainerConfig
 from omnire.runtime import Reconstruction
 from omnire.trainer import Trainer
@@ -89,10 +90,10 @@ __all__ = [
     "HumanPoseSequence", "ImageCache", "ImageReadError", "InstantiateConfig", "LidarSweeps", "LogDataparserConfig",
     "LossContext", "LossSpec", "MethodConfig", "MethodSpec", "Node", "NodeConfig", "NodeContext", "NodeOutput",
     "NodeTypeSpec", "ParamGroup", "PoseEstimatorSpec", "RasterInputError", "RasterSettings", "RasterizerSpec",
-    "Reconstruction", "Registry", "RenderOutput", "SceneData", "SceneDataError", "SceneTime", "SceneWriterSpec",
+    "CheckpointError", "Reconstruction", "Registry", "RunDirectory", "RunDirectoryError", "RenderOutput", "SceneData", "SceneDataError", "SceneTime", "SceneWriterSpec",
     "Splats", "TrainConfig", "TrainObserverSpec", "Trainer", "TrainerConfig", "UserError", "View", "atomic_write_bytes",
     "atomic_write_text", "axis_angle_to_rotmat", "axis_rotation", "bracket", "check_raster_inputs", "colour_from_images",
-    "far_shell", "first_pose_world", "frame_blend", "frame_range", "holdout_split", "hookimpl", "in_frustum",
+    "far_shell", "first_pose_world", "image_size", "frame_blend", "frame_range", "holdout_split", "hookimpl", "in_frustum",
     "init_background_params", "init_gaussian_params", "interpolate_poses", "interpolate_track", "invert_se3",
     "knn_scales", "lidar_points_for_init", "points_in_box", "positional_encoding", "quat_multiply",
     "quat_to_rotmat", "rgb_to_sh0", "rot_z", "rotmat_to_axis_angle", "rotmat_to_quat", "slerp_rotmats",

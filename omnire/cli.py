@@ -9,9 +9,11 @@ are bugs and keep their traceback.
 from __future__ import annotations
 
 import sys
+import warnings
 from typing import Optional
 
 from rich.console import Console
+from rich.markup import escape
 
 from omnire.errors import UserError
 from omnire.plugins import PluginLoadError, load_plugins
@@ -38,15 +40,16 @@ def main(argv: Optional[list[str]] = None) -> int:
     strict = "--strict" in argv
     debug = "--debug" in argv
     argv = [a for a in argv if a not in ("--strict", "--debug")]
-    err = Console(stderr=True)
+    err = Console(stderr=True, highlight=False, soft_wrap=True)  # messages stay one line each
+    warnings.showwarning = lambda message, *args, **kwargs: err.print(f"[yellow]warning:[/] {escape(str(message))}")
     try:
         plugins = load_plugins(strict=True if strict else None)
     except PluginLoadError as exc:
-        err.print(f"[red]error:[/] {exc}", highlight=False)
+        err.print(f"[red]error:[/] {escape(str(exc))}")
         return 3
     if argv[:1] != ["plugins"]:
         for failure in plugins.failures:
-            err.print(f"[yellow]warning:[/] {failure.describe()} (skipped; --strict makes this fatal)", highlight=False)
+            err.print(f"[yellow]warning:[/] {escape(failure.describe())} (skipped; --strict makes this fatal)")
     if not argv or argv[0] in {"-h", "--help"}:
         out = Console()
         out.print("usage: omnire [--strict] [--debug] <command> [args]\n\ncommands:")
@@ -60,16 +63,16 @@ def main(argv: Optional[list[str]] = None) -> int:
             out.print(f"usage: omnire {argv[0]} <name> [args]\n")
             print_commands(out, plugins.commands, argv[0] + " ")
             return 2
-        err.print(f"[red]error:[/] unknown command {argv[0]!r}; commands: {', '.join(plugins.commands.names())}",
-                  highlight=False)
+        err.print(f"[red]error:[/] unknown command {argv[0]!r}; commands: {', '.join(plugins.commands.names())}")
         return 2
     try:
         code = plugins.commands.get(name).main(rest, plugins)
     except UserError as exc:
         if debug:
             err.print_exception()
-        err.print(f"[red]error:[/] {exc}", highlight=False)
-        return 2
+        err.print(f"[red]error:[/] {escape(str(exc))}")
+        signum = getattr(exc, "signum", None)  # training stopped by a signal: the shell's convention
+        return 128 + signum if signum else 2
     except KeyboardInterrupt:
         err.print("[red]interrupted[/]")
         return 130

@@ -13,7 +13,7 @@ camera, over the frames where the ego moves:
    move (road asphalt passing under a side camera is uniform enough to look static in
    colour, but its grain changes from frame to frame); with LiDAR, a candidate the LiDAR
    sees into (returns projected onto it) is world, not car;
-4. the accepted regions, closed over the edge between them and with holes filled.
+4. the accepted regions, grown over their outline (2 px) and closed, holes filled.
 
 Pixels of the mask are left out of the losses (so of the densification statistics, which
 come from the loss gradients) and of every metric. Limits: a camera whose view of the car
@@ -88,8 +88,11 @@ def estimate_ego_mask(images: np.ndarray, lidar_hits: Optional[np.ndarray] = Non
         mask |= region
     if not mask.any():
         return mask
-    mask = ndimage.binary_closing(mask, iterations=3)  # take in the outline between regions
-    return ndimage.binary_fill_holes(mask)
+    # Take in the outline (the persistent edge between the body and the world, ~2 px wide)
+    # and any parts split off by inner edges; padded so the image border is not eroded.
+    padded = np.pad(mask, 4, mode="edge")
+    padded = ndimage.binary_closing(ndimage.binary_dilation(padded, iterations=2), iterations=2)
+    return ndimage.binary_fill_holes(padded)[4:-4, 4:-4]
 
 
 def estimate_scene_ego_masks(scene, images, max_frames: int = 40) -> dict[str, np.ndarray]:

@@ -21,7 +21,6 @@ import math
 from typing import Callable, Optional
 
 import torch
-from torch import nn
 
 from omnire.nodes.base import Node, ParamGroup
 from omnire.rowsparse import step_sparse_params

@@ -109,9 +109,10 @@ class NodeTypeSpec:
     nodes such as background or sky). ``priority`` breaks ties when several enabled node
     types accept one actor (higher wins). ``accepts(track, scene)`` is a pure predicate that
     may refuse an actor (e.g. the SMPL node refuses pedestrians without pose sequences).
-    ``prepare(scene, plugins)`` runs once per scene, before any track is assigned, for the
-    node types a method enables (e.g. the SMPL node type fills ``scene.human_poses`` with
-    the registered pose estimators); it may add to the scene, never remove.
+    ``prepare(scene, plugins, config)`` runs once per scene, before any track is assigned,
+    for the node types a method enables, with the node's config (e.g. the SMPL node type
+    fills ``scene.human_poses`` with the registered pose estimators); it may add to the
+    scene, never remove.
     """
 
     name: str
@@ -120,7 +121,7 @@ class NodeTypeSpec:
     categories: frozenset[str] = frozenset()
     priority: int = 0
     accepts: Optional[Callable[["ActorTrack", "SceneData"], bool]] = None
-    prepare: Optional[Callable[["SceneData", Any], None]] = None
+    prepare: Optional[Callable[["SceneData", Any, Any], None]] = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,13 +200,14 @@ class SceneWriterSpec:
 class TrainObserverSpec:
     """Something that watches training (``--trainer.observers <name>``), e.g. a live viewer.
 
-    ``factory(trainer)`` builds an object with ``on_step(step: int, stats: dict) -> None``,
+    ``factory(trainer, options)`` (``options``: the ``--trainer.observer-options`` key=value
+    pairs as a dict) builds an object with ``on_step(step: int, stats: dict) -> None``,
     called after every ``--trainer.observe-every`` steps and at the end, and ``close()``.
     It may read ``trainer.recon`` (the scene runtime) and must not change it."""
 
     name: str
     description: str
-    factory: Callable[[Any], Any]
+    factory: Callable[[Any, dict[str, str]], Any]
 
 
 @dataclasses.dataclass(frozen=True)

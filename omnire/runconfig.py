@@ -55,6 +55,8 @@ class TrainerConfig:
     viewer: the scene live in the browser)."""
     observe_every: int = 100
     """Steps between observer updates."""
+    observer_options: tuple[str, ...] = ()
+    """key=value options passed to the observers (e.g. for the viewer: host=0.0.0.0 port=8081)."""
 
     def __post_init__(self) -> None:
         validate_trainer_config(self)
@@ -84,6 +86,9 @@ def validate_trainer_config(tc: TrainerConfig) -> None:
                           f"(torch {torch.__version__}); use --trainer.device cpu")
     if device.type not in ("cpu", "cuda"):
         raise ConfigError(f"--trainer.device {tc.device}: only cpu and cuda are supported")
+    for option in tc.observer_options:
+        if "=" not in option or not option.split("=", 1)[0].strip():
+            raise ConfigError(f"--trainer.observer-options {option!r}: expected key=value")
     if tc.run_name is not None and (not tc.run_name.strip() or "/" in tc.run_name or tc.run_name in (".", "..")):
         raise ConfigError(f"--trainer.run-name {tc.run_name!r}: must be a plain directory name")
 

@@ -142,16 +142,16 @@ class RunDirectory:
                 removed.append(p)
         return removed
 
-    def load_latest_checkpoint(self, map_location: Any = "cpu") -> tuple[Path, dict]:
+    def load_latest_checkpoint(self, map_location: Any = "cpu", mmap: bool = False) -> tuple[Path, dict]:
         """The newest intact checkpoint (by step number) and its state. Damaged ones are
-        skipped with a warning naming them."""
+        skipped with a warning naming them. ``mmap``: see :func:`load_checkpoint`."""
         ckpts = self.checkpoints()
         if not ckpts:
             raise RunDirectoryError(f"{self.path}: no checkpoints/step-*.pt inside (the run saved no checkpoint)")
         problems = []
         for _, path in reversed(ckpts):
             try:
-                return path, load_checkpoint(path, map_location)
+                return path, load_checkpoint(path, map_location, mmap)
             except CheckpointError as exc:
                 problems.append(str(exc))
                 warnings.warn(f"{exc}; trying an older checkpoint", stacklevel=2)
@@ -177,9 +177,11 @@ class RunDirectory:
 CHECKPOINT_KEYS = ("step", "model")
 
 
-def load_checkpoint(path: Path, map_location: Any = "cpu") -> dict:
+def load_checkpoint(path: Path, map_location: Any = "cpu", mmap: bool = False) -> dict:
     """A checkpoint's state dict, loaded with ``weights_only=True`` (tensors and plain data
-    only). Raises :class:`CheckpointError` naming the file when it is empty, truncated, not a
+    only). With ``mmap`` (CPU only) the tensors are memory-mapped from the file and read on
+    first use (the optimiser state of a checkpoint then costs nothing unless touched).
+    Raises :class:`CheckpointError` naming the file when it is empty, truncated, not a
     checkpoint, or holds anything else (refused as unsafe)."""
     import torch
 
@@ -191,7 +193,7 @@ def load_checkpoint(path: Path, map_location: Any = "cpu") -> dict:
     if size == 0:
         raise CheckpointError(f"{path}: empty checkpoint file")
     try:
-        state = torch.load(path, map_location=map_location, weights_only=True)
+        state = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except pickle.UnpicklingError:
         raise CheckpointError(f"{path}: refused as unsafe (it holds objects other than tensors and plain data); "
                               "it was not written by omnire") from None
@@ -203,17 +205,17 @@ def load_checkpoint(path: Path, map_location: Any = "cpu") -> dict:
     return state
 
 
-def find_checkpoint(path: Path, map_location: Any = "cpu") -> tuple[RunDirectory, Path, dict]:
+def find_checkpoint(path: Path, map_location: Any = "cpu", mmap: bool = False) -> tuple[RunDirectory, Path, dict]:
     """A run directory or a checkpoint file inside one -> (run directory, checkpoint path,
     state). For a directory, the newest intact checkpoint."""
     path = Path(path)
     if path.is_file():
         run = RunDirectory(path.parent.parent if path.parent.name == "checkpoints" else path.parent)
-        return run, path, load_checkpoint(path, map_location)
+        return run, path, load_checkpoint(path, map_location, mmap)
     if not path.is_dir():
         raise RunDirectoryError(f"{path}: no such run directory or checkpoint file")
     run = RunDirectory(path)
-    ckpt, state = run.load_latest_checkpoint(map_location)
+    ckpt, state = run.load_latest_checkpoint(map_location, mmap)
     return run, ckpt, state
 
 

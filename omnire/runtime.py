@@ -55,47 +55,54 @@ class Reconstruction:
         """A new scene graph for ``scene``: the enabled node types prepare the scene (e.g.
         body poses), tracks are assigned to node types, nodes initialise from the data."""
         specs = enabled_node_specs(method, plugins.node_types)
-        for spec in specs.values():
+        for name, spec in specs.items():
             if spec.prepare is not None:
-                spec.prepare(scene, plugins)
+                spec.prepare(scene, plugins, method.nodes[name])
         rasterizer = select_rasterizer(plugins, method.rasterizer, device)
         model = SceneModel(method, scene, specs, images, rasterizer, device, seed=seed)
         return cls(scene, model, method)
 
     @classmethod
     def restore(cls, config: TrainConfig, scene: SceneData, plugins, device: torch.device, assignment: dict,
-                state: dict) -> "Reconstruction":
+                state: dict, assign: bool = False) -> "Reconstruction":
         """The scene graph of a checkpoint ``state`` (with the recorded track ``assignment``):
-        nodes are built empty, then filled from the state."""
+        nodes are built empty, then filled from the state (``assign``: see :meth:`load_state`)."""
         specs = enabled_node_specs(config.method, plugins.node_types)
         rasterizer = select_rasterizer(plugins, config.method.rasterizer, device)
         model = SceneModel(config.method, scene, specs, None, rasterizer, device, assignment=assignment,
                            restoring=True)
         recon = cls(scene, model, config.method)
-        recon.load_state(state)
+        recon.load_state(state, assign=assign)
         return recon
 
     @classmethod
     def from_run(cls, run_dir: Path, plugins, checkpoint: Optional[Path] = None,
-                 device: Optional[str] = None) -> "Reconstruction":
+                 device: Optional[str] = None, read_only: bool = False) -> "Reconstruction":
         """Load a trained scene from a run directory (its newest intact checkpoint, or
-        ``checkpoint``). Reads run.json and the scene's metadata; no training image."""
+        ``checkpoint``). Reads run.json and the scene's metadata; no training image.
+
+        ``read_only`` (CPU): the model's tensors are memory-mapped from the checkpoint file
+        and used in place, without gradients: peak memory about the parameters once (for
+        export and viewing; not for training)."""
         run = RunDirectory(run_dir)
         info = run.read_info()
         config = parse_recorded_args(info, plugins)
-        dev = torch.device(device or config.trainer.device)
-        _, _, state = find_checkpoint(checkpoint or run.path, map_location=dev)
+        dev = torch.device("cpu" if read_only else (device or config.trainer.device))
+        _, path, state = find_checkpoint(checkpoint or run.path, map_location=dev, mmap=read_only)
         scene = config.dataparser.setup().load()
-        recon = cls.restore(config, scene, plugins, dev, info.node_assignment, state)
-        recon.run_info, recon.config, recon.run_dir = info, config, run
+        recon = cls.restore(config, scene, plugins, dev, info.node_assignment, state, assign=read_only)
+        if read_only:
+            recon.model.requires_grad_(False)
+        recon.run_info, recon.config, recon.run_dir, recon.checkpoint = info, config, run, path
         return recon
 
     # ------------------------------------------------------------------ state
-    def load_state(self, state: dict) -> None:
-        """Load a checkpoint's model state (Gaussian counts may differ from the current ones)."""
+    def load_state(self, state: dict, assign: bool = False) -> None:
+        """Load a checkpoint's model state (Gaussian counts may differ from the current ones).
+        ``assign``: adopt the state's tensors instead of copying them (e.g. memory-mapped ones)."""
         for name, node in self.model.nodes.items():
             node.prepare_load(state["model"], prefix=f"nodes.{name}.")
-        self.model.load_state_dict(state["model"])
+        self.model.load_state_dict(state["model"], assign=assign)
         self.step = int(state["step"])
 
     # ------------------------------------------------------------------ queries

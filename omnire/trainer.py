@@ -44,7 +44,12 @@ class TrainingError(UserError):
 
 
 class TrainingInterrupted(UserError):
-    """Training was stopped by a signal; a checkpoint of the current step was written."""
+    """Training was stopped by a signal; a checkpoint of the current step was written. The
+    CLI exits with 128 + the signal number (130 for Ctrl-C, 143 for SIGTERM)."""
+
+    def __init__(self, message: str, signum: int) -> None:
+        super().__init__(message)
+        self.signum = signum
 
 
 def psnr_from_mse(mse: float) -> float:
@@ -111,6 +116,7 @@ class Trainer:
         self.train_views = self.scene.views(self.scene.train_frames)
         self.test_views = self.scene.views(self.scene.test_frames)
         self.step = 0
+        self.train_seconds = 0.0
         self.observers: list = []
         self._stop_signal: Optional[int] = None
         if resume_state is not None:
@@ -250,7 +256,8 @@ class Trainer:
         omnire_log.addHandler(file_log)
         for record in self._early_records:
             file_log.handle(record)
-        self.observers = [self.plugins.train_observers.get(name).factory(self) for name in tc.observers]
+        options = dict(option.split("=", 1) for option in tc.observer_options)
+        self.observers = [self.plugins.train_observers.get(name).factory(self, options) for name in tc.observers]
         previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
             return self._train_loop(tc)
@@ -275,7 +282,7 @@ class Trainer:
                        "{task.fields[ng]} G"),
             TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), disable=not tc.progress, transient=False,
         )
-        train_seconds = 0.0  # time in training steps only (evaluation excluded)
+        train_seconds = self.train_seconds  # time in training steps only (evaluation excluded), resumed runs included
         diverged: list[str] = []
         with progress, open(metrics_path, "a") as metrics:
             task = progress.add_task("train", total=tc.max_steps, completed=self.step, loss=0.0, psnr=0.0, its=0.0,
@@ -288,6 +295,7 @@ class Trainer:
                 stats = self.train_step()
                 dt = time.perf_counter() - t0
                 train_seconds += dt
+                self.train_seconds = train_seconds
                 window_seconds += dt
                 window_n += 1
                 window_psnr.append(stats["psnr"])
@@ -332,7 +340,7 @@ class Trainer:
         name = signal.Signals(self._stop_signal).name
         path = self.save_checkpoint()
         raise TrainingInterrupted(f"{name}: stopped at step {self.step}; checkpoint {path} written "
-                                  f"(continue with --trainer.resume {self.run.path})")
+                                  f"(continue with --trainer.resume {self.run.path})", self._stop_signal)
 
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()
@@ -358,6 +366,7 @@ class Trainer:
             "strategy": self.strategy.state_dict(),
             "rng_torch": torch.get_rng_state(),
             "rng_sampler": self.sampler.get_state(),
+            "train_seconds": self.train_seconds,
         }
 
     def save_checkpoint(self) -> Path:
@@ -383,6 +392,7 @@ class Trainer:
         torch.set_rng_state(state["rng_torch"])
         self.sampler.set_state(state["rng_sampler"])
         self.step = int(state["step"])
+        self.train_seconds = float(state.get("train_seconds", 0.0))
 
 
 def _comparable(config) -> dict:

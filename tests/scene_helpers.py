@@ -100,3 +100,37 @@ def regularization_at(node, frame, seconds=0.0, step=None):
 
     out = node.gaussians_at(SceneTime(frame, seconds), None, step)
     return {} if out is None else node.regularization(out)
+
+
+TINY_RUN_KEY = "omnire-tiny-run-v1"  # bump when the recipe below changes
+
+
+def make_tiny_run(root):
+    """A tiny trained OmniRe run (background, rigid cars, SMPL pedestrians, sky): ``omnire
+    synth urban --tiny`` with one camera under ``root``, two training steps; returns the run
+    directory (reused when ``root`` already holds it: one per test session, shared by the
+    plugins' tests through the ``TINY_RUN_KEY`` folder)."""
+    import os
+
+    import torch
+
+    from omnire.plugins import load_plugins
+    from omnire.runconfig import parse_train_args
+    from omnire.trainer import Trainer
+
+    run = root / "runs" / "omnire"
+    if list((run / "checkpoints").glob("step-*.pt")):
+        return run
+    torch.set_num_threads(1)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    plugins = load_plugins()
+    scene = root / "scene"
+    synth = plugins.commands.get("synth").main
+    assert synth(["urban", str(scene), "--tiny", "--num-cameras", "1"], plugins) in (0, None)
+    argv = ["omnire", "processed", "--data", str(scene), "--trainer.max-steps", "2",
+            "--trainer.output-dir", str(root / "runs"), "--trainer.run-name", "omnire", "--trainer.no-progress",
+            "--trainer.eval-train-views", "1", "--trainer.threads", "1", "--method.rasterizer", "torch",
+            "--method.nodes.background.max-lidar-points", "3000", "--method.nodes.background.num-far-points", "300",
+            "--method.nodes.smpl.gaussians-per-person", "300"]
+    Trainer(parse_train_args(argv, plugins), plugins, argv=argv).train()
+    return run

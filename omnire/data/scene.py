@@ -257,10 +257,20 @@ class SceneData:
             raise SceneDataError(f"scene {self.name!r}: no frames")
         if not self.cameras:
             raise SceneDataError(f"scene {self.name!r}: no cameras")
+        _check_shape(np.asarray(self.frame_timestamps, dtype=np.float64), (F,), "frame_timestamps")
+        if F > 1 and not np.all(np.diff(self.frame_timestamps) > 0):
+            raise SceneDataError(f"scene {self.name!r}: frame_timestamps must increase strictly")
         for cam in self.cameras:
             where = f"camera {cam.name!r}"
             _check_shape(cam.intrinsics, (3, 3), f"{where}.intrinsics")
+            fx, fy, cx, cy = cam.intrinsics[0, 0], cam.intrinsics[1, 1], cam.intrinsics[0, 2], cam.intrinsics[1, 2]
+            if not (fx > 0 and fy > 0):
+                raise SceneDataError(f"{where}.intrinsics: focal lengths fx={fx}, fy={fy} must be positive")
+            if not (-cam.width <= cx <= 2 * cam.width and -cam.height <= cy <= 2 * cam.height):
+                raise SceneDataError(f"{where}.intrinsics: principal point ({cx:.1f}, {cy:.1f}) is far outside the "
+                                     f"{cam.width}x{cam.height} image (wrong units or a wrong image size?)")
             _check_shape(cam.cam_to_world, (F, 4, 4), f"{where}.cam_to_world")
+            _check_shape(np.asarray(cam.timestamps, dtype=np.float64), (F,), f"{where}.timestamps")
             if len(cam.image_paths) != F:
                 raise SceneDataError(f"{where}.image_paths: {len(cam.image_paths)} entries, expected {F}")
             if cam.width <= 0 or cam.height <= 0:

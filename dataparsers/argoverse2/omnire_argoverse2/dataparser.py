@@ -22,6 +22,7 @@ from typing import Type
 import numpy as np
 
 from omnire.api import (
+    image_size,
     ActorTrack,
     CameraSequence,
     Dataparser,
@@ -175,7 +176,7 @@ class Argoverse2Dataparser(Dataparser):
         intr = av2.sensor_row(intrinsics, name, calib / "intrinsics.feather", "camera intrinsics")
         cam_to_ego = av2.sensor_row(sensors, name, calib / "egovehicle_SE3_sensor.feather", "camera extrinsics")
         chosen = [paths[i] for i in pick]
-        size = _image_size(chosen[0])
+        size = image_size(chosen[0])
         if size != (intr.width, intr.height):
             raise Av2LogError(f"{chosen[0]}: image is {size[0]}x{size[1]} but {calib / 'intrinsics.feather'} gives "
                               f"{name} width_px x height_px = {intr.width}x{intr.height}")
@@ -271,19 +272,6 @@ def load_tracks(ann: av2.Annotations, path: Path, frame_ns: np.ndarray, ego: av2
         ))
     return tracks
 
-
-def _image_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image from its header (OpenImageIO; pixels are not read)."""
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise Av2LogError(f"{path}: unreadable image ({oiio.geterror()}); expected a JPEG")
-    try:
-        spec = inp.spec()
-        return int(spec.width), int(spec.height)
-    finally:
-        inp.close()
 
 
 def read_log(data: Path, **overrides) -> SceneData:

@@ -44,6 +44,7 @@ from typing import Literal, Optional, Type
 import numpy as np
 
 from omnire.api import (
+    image_size,
     ActorTrack,
     axis_rotation,
     CameraSequence,
@@ -333,7 +334,7 @@ class KittiDataparser(Dataparser):
         if missing:
             more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
             raise KittiFileMissing(f"{missing[0]}: missing image of {name}{more}")
-        width, height = _image_size(paths[0])
+        width, height = image_size(paths[0])
         w_out, h_out = max(1, round(width * self.config.scale)), max(1, round(height * self.config.scale))
         sx, sy = w_out / width, h_out / height
         K = np.array([[K0[0, 0] * sx, K0[0, 1] * sx, (K0[0, 2] + 0.5) * sx],  # integer pixel centres -> +0.5
@@ -410,19 +411,6 @@ class KittiDataparser(Dataparser):
             ))
         return tracks
 
-
-def _image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the image header (pixels are not decoded)."""
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise KittiDataError(f"{path}: unreadable image ({oiio.geterror()}); expected a PNG")
-    try:
-        spec = inp.spec()
-        return int(spec.width), int(spec.height)
-    finally:
-        inp.close()
 
 
 @dataclasses.dataclass

@@ -43,6 +43,7 @@ from typing import Optional, Type
 import numpy as np
 
 from omnire.api import (
+    image_size,
     ActorTrack,
     CameraSequence,
     ConfigError,
@@ -296,7 +297,7 @@ class NuScenesDataparser(Dataparser):
             more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
             raise NuScenesFileMissing(f"{p}: missing image of {name} (sample_data {r['token']!r} field 'filename'){more}")
         width, height = int(sds[0]["width"]), int(sds[0]["height"])
-        w_disk, h_disk = _image_size(paths[0])
+        w_disk, h_disk = image_size(paths[0])
         if (w_disk, h_disk) != (width, height):
             raise NuScenesDataError(f"{paths[0]}: image is {w_disk}x{h_disk}, but sample_data {sds[0]['token']!r} "
                                     f"fields 'width', 'height' say {width}x{height}")
@@ -414,19 +415,6 @@ class NuScenesDataparser(Dataparser):
             ))
         return tracks
 
-
-def _image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the image header (pixels are not decoded)."""
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise NuScenesDataError(f"{path}: unreadable image ({oiio.geterror()}); expected a JPEG")
-    try:
-        spec = inp.spec()
-        return int(spec.width), int(spec.height)
-    finally:
-        inp.close()
 
 
 @dataclasses.dataclass

@@ -49,7 +49,7 @@ from omnire.data.scene import (
     holdout_split,
 )
 from omnire.io import safe_pickle
-from omnire.api import MissingFileError, quat_to_rotmat, rot_z
+from omnire.api import image_size, MissingFileError, quat_to_rotmat, rot_z
 
 CAMERAS = (
     "front_camera",
@@ -449,7 +449,7 @@ class PandasetDataparser(Dataparser):
         if missing:
             more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
             raise MissingFileError(f"{missing[0]}: missing image of camera {name}{more}")
-        width, height = _image_size(paths[0])
+        width, height = image_size(paths[0])
         # Loaded size: files scaled by `scale`, rounded; K scaled per axis by the exact ratio.
         # PandaSet's K maps to continuous image coordinates with pixel centres at +0.5 (its
         # devkit's projection keeps 0 < u < width, 0 < v < height), omnire's convention: no
@@ -508,19 +508,6 @@ class PandasetDataparser(Dataparser):
         ]
         return _tracks_from_cuboids(deduplicate_cuboids(tables), world)
 
-
-def _image_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image file from its header (OpenImageIO; pixels are not read)."""
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise SceneDataError(f"{path}: unreadable image ({oiio.geterror()}); expected a JPEG")
-    try:
-        spec = inp.spec()
-        return int(spec.width), int(spec.height)
-    finally:
-        inp.close()
 
 
 @dataclasses.dataclass

@@ -50,6 +50,8 @@ from typing import Literal, Optional, Type
 
 import numpy as np
 
+from omnire.api import image_size
+
 from omnire.data.dataparser import Dataparser, DataparserConfig
 from omnire.data.scene import (
     ActorTrack,
@@ -85,16 +87,6 @@ def _load_matrix(path: Path) -> np.ndarray:
         raise ProcessedSceneError(f"{path}: contains NaN or inf")
     return m
 
-
-def _image_size(path: Path) -> tuple[int, int]:
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise ProcessedSceneError(f"{path}: cannot read image ({oiio.geterror()})")
-    spec = inp.spec()
-    inp.close()
-    return spec.width, spec.height
 
 
 def _to_numpy(x) -> np.ndarray:
@@ -321,7 +313,7 @@ class ProcessedDataparser(Dataparser):
         if np.any(np.abs(vals[4:]) > 1e-9):
             self.notes.append(f"camera {cam}: distortion coefficients ignored (images are used as pinhole)")
         images = [self._image_path(root / "images", f"{t:03d}_{cam}") for t in frames]
-        w0, h0 = _image_size(images[0])
+        w0, h0 = image_size(images[0])
         W, H = max(1, round(w0 * self.config.scale)), max(1, round(h0 * self.config.scale))
         sx, sy = W / w0, H / h0
         centres = self.config.file_pixel_centres

@@ -8,7 +8,6 @@ and gsplat version.
 """
 from __future__ import annotations
 
-from typing import Optional
 
 import torch
 

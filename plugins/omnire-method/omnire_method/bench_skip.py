@@ -83,7 +83,7 @@ def main(argv: list[str], plugins) -> int:
     args = tyro.cli(SkipBenchArgs, args=argv, prog="omnire bench skip")
     cfg = plugins.dataparsers.get(args.dataparser).config_factory()
     cfg.data, cfg.scale = args.data, args.scale
-    scene = cfg.setup().parse().validate()
+    scene = cfg.setup().load()
     out: dict = {"args": {k: str(v) for k, v in dataclasses.asdict(args).items()}}
 
     no_humans = copy.copy(scene)

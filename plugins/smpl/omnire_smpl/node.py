@@ -36,7 +36,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 import numpy as np
 import torch
@@ -80,6 +80,10 @@ class SMPLConfig(GaussianNodeConfig):
     """Gaussians per person at initialisation (area-weighted subsample of the template vertices; 0 = one per vertex)."""
     scale_to_box: bool = True
     """Scale each template to its box height (skipped when betas and shape blend shapes give the shape)."""
+    pose_source: Literal["auto", "fit", "estimator", "neutral"] = "auto"
+    """Starting body poses of pedestrians without a sequence from the dataset: auto (image
+    estimator keypoints + LiDAR body fitter, fused), fit (LiDAR fitter only), estimator (the
+    image estimator's rotations only), neutral (a standing pose)."""
     refine_poses: bool = True
     """Learn per-frame body poses and global orientations (body-pose refinement)."""
     lr_pose: float = 5e-4

@@ -17,27 +17,19 @@ run's log with a summary line; the node prints a one-line summary on the console
 from __future__ import annotations
 
 import logging
-import os
 
-from omnire.api import ConfigError, NodeTypeSpec, hookimpl, usable_track, visible_in_cameras
+from omnire.api import NodeTypeSpec, hookimpl, usable_track, visible_in_cameras
 
 log = logging.getLogger("omnire.nodes.smpl")
 
-POSE_SOURCE_ENV = "OMNIRE_HUMAN_POSES"
-"""Environment switch of the pose sources, for comparisons (e.g. estimated against neutral
-starting poses in ``omnire bench train``): auto (image estimator + LiDAR fitter, fused),
-fit (LiDAR fitter only), estimator (image estimator's rotations only), neutral (none)."""
-POSE_SOURCES = ("auto", "fit", "estimator", "neutral")
 
-
-def prepare_scene(scene, plugins) -> None:
-    """Fill ``scene.human_poses`` for every pedestrian track (see the module docstring)."""
+def prepare_scene(scene, plugins, config=None) -> None:
+    """Fill ``scene.human_poses`` for every pedestrian track (see the module docstring), from
+    the sources ``config.pose_source`` (an :class:`~omnire_smpl.node.SMPLConfig`) allows."""
     from omnire_body.humanpose import prepare_human_poses, select_estimator
 
     humans = [t for t in scene.tracks if t.category == "human"]
-    mode = os.environ.get(POSE_SOURCE_ENV, "auto")
-    if mode not in POSE_SOURCES:
-        raise ConfigError(f"{POSE_SOURCE_ENV}={mode!r}: expected one of {', '.join(POSE_SOURCES)}")
+    mode = getattr(config, "pose_source", "auto")
     estimator = None
     needed = any(t.track_id not in scene.human_poses for t in humans)
     if needed and mode in ("auto", "estimator"):

@@ -80,5 +80,6 @@ def project_gaussians(
         mx, my = means2d.unbind(-1)
         on_screen = (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) & (my - radius < height)
         visible = ok & on_screen & torch.isfinite(radius)
-        radii = torch.where(visible, radius, torch.zeros_like(radius)).to(torch.int32)
+        # a splat wider than ~1M px (a diverged Gaussian) would overflow int32: cap it; it still covers the image
+        radii = torch.where(visible, radius.clamp(max=2.0**20), torch.zeros_like(radius)).to(torch.int32)
     return Projected(means2d, conics, z, radii, visible)

@@ -9,7 +9,6 @@ per-pixel offset tensor, so it is exact per pixel, like gsplat's.
 from __future__ import annotations
 
 import math
-from typing import Optional
 
 import torch
 
@@ -148,7 +147,8 @@ def _bin_pairs(proj, tiles_x: int, tiles_y: int) -> tuple[torch.Tensor, torch.Te
     """(Gaussian id, tile id) pairs for every tile a visible Gaussian's 3-sigma box touches,
     sorted by tile then depth. Returns gids (M,), tile_ids (M,)."""
     with torch.no_grad():
-        vis = torch.nonzero(proj.visible).flatten()
+        # a projection that overflowed (a Gaussian at the camera plane) cannot be binned
+        vis = torch.nonzero(proj.visible & torch.isfinite(proj.means2d).all(-1) & torch.isfinite(proj.depths)).flatten()
         if vis.numel() == 0:
             e = torch.zeros(0, dtype=torch.long, device=proj.depths.device)
             return e, e

@@ -5,12 +5,11 @@ The viewer never touches the model being trained: at each refresh it takes a cop
 scene graph (the parameters once more in memory; the scene data is shared) and shows that,
 so its controls (time slider, server renders) stay usable while training continues.
 
-Address: ``OMNIRE_VIEWER_HOST`` (default 127.0.0.1) and ``OMNIRE_VIEWER_PORT`` (default 8080).
+Address: ``--trainer.observer-options host=... port=...`` (default 127.0.0.1:8080).
 """
 from __future__ import annotations
 
 import copy
-import os
 
 import torch
 
@@ -31,16 +30,15 @@ def snapshot(recon: Reconstruction) -> Reconstruction:
 class ViewerObserver:
     """Built by the registry's factory with the trainer; see the module docstring."""
 
-    def __init__(self, trainer) -> None:
+    def __init__(self, trainer, options: dict[str, str]) -> None:
         from omnire_viewer.app import Viewer
         from omnire_viewer.scene import ViewerScene
 
-        host = os.environ.get("OMNIRE_VIEWER_HOST", "127.0.0.1")
+        host = options.get("host", "127.0.0.1")
         try:
-            port = int(os.environ.get("OMNIRE_VIEWER_PORT", "8080"))
+            port = int(options.get("port", "8080"))
         except ValueError:
-            raise UserError(f"OMNIRE_VIEWER_PORT={os.environ['OMNIRE_VIEWER_PORT']!r}: expected a port "
-                            "number") from None
+            raise UserError(f"--trainer.observer-options port={options['port']!r}: expected a port number") from None
         self.trainer = trainer
         scene = ViewerScene(snapshot(trainer.recon))
         name = trainer.run_dir.name if trainer.run_dir is not None else "training"

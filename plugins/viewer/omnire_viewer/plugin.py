@@ -9,10 +9,10 @@ def _main(argv, plugins):
     return main(argv, plugins)
 
 
-def _observer(trainer):
+def _observer(trainer, options):
     from omnire_viewer.observer import ViewerObserver
 
-    return ViewerObserver(trainer)
+    return ViewerObserver(trainer, options)
 
 
 @hookimpl
@@ -24,4 +24,5 @@ def omnire_register_commands(registry) -> None:
 @hookimpl
 def omnire_register_train_observers(registry) -> None:
     registry.register(TrainObserverSpec("viewer", "the scene live in the browser during training "
-                                        "(OMNIRE_VIEWER_HOST/PORT, default 127.0.0.1:8080)", _observer))
+                                        "(--trainer.observer-options host=... port=..., default 127.0.0.1:8080)",
+                                        _observer))

@@ -223,12 +223,9 @@ def test_hide_move_and_pick(viewer, recon):
 def test_training_observer_shows_snapshots(recon, plugins):
     """The registered observer, built the way the trainer builds it, shows copies: the
     trained model is never touched and updates reach the viewer at on_step."""
-    import os
-
-    os.environ["OMNIRE_VIEWER_PORT"] = "0"
     trainer = SimpleNamespace(recon=recon, run_dir=None, config=SimpleNamespace(
         method_name="omnire", trainer=SimpleNamespace(observe_every=1)))
-    observer = plugins.train_observers.get("viewer").factory(trainer)
+    observer = plugins.train_observers.get("viewer").factory(trainer, {"port": "0"})
     try:
         shown = observer.viewer.scene.recon
         assert shown is not recon and shown.model is not recon.model
@@ -243,7 +240,6 @@ def test_training_observer_shows_snapshots(recon, plugins):
         assert "/nodes/background" in observer.viewer._handles
     finally:
         observer.close()
-        del os.environ["OMNIRE_VIEWER_PORT"]
 
 
 def test_clear_errors(tiny_run, plugins, recon, tmp_path):
