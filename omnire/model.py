@@ -203,7 +203,8 @@ class SceneModel(nn.Module):
         """True when renders take the inference path: autograd is off and the rasterizer
         renders raw Gaussians itself (``rasterize_gaussians``: activation, SH colour and view
         culling natively, nothing kept for a backward pass). Same pixels as the training path
-        up to float rounding (tests: plugins/cpu-rasterizer, tests/test_inference_render.py)."""
+        up to float rounding (tests: plugins/cpu-rasterizer/tests/test_cpu_raster_inference.py,
+        plugins/sim/tests/test_fast_render.py)."""
         return not torch.is_grad_enabled() and hasattr(self.rasterizer, "rasterize_gaussians")
 
     def render_parts(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Camera, t: SceneTime,

@@ -62,7 +62,7 @@ class Mp4Writer:
                 video.append(image)
     """
 
-    def __init__(self, path: str | Path, fps: float, crf: int = 18, preset: str = "medium") -> None:
+    def __init__(self, path: str | Path, fps: float, crf: int = 18, preset: str = "fast") -> None:
         if not fps > 0:
             raise ConfigError(f"video fps {fps}: must be > 0")
         if not 0 <= crf <= 51:

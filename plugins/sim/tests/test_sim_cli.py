@@ -190,3 +190,26 @@ def test_video_writer_is_atomic(tmp_path):
     frames, fps = read_mp4(target)
     assert frames.shape == (3, 10, 12, 3) and fps == 10.0
     assert abs(int(frames[2, 4, 4, 0]) - 200) <= 3
+
+
+def test_video_is_h264(tmp_path):
+    import imageio_ffmpeg
+
+    from omnire.io.video import write_mp4
+
+    write_mp4(tmp_path / "v.mp4", [np.zeros((16, 16, 3), np.uint8)] * 2, fps=5)
+    meta = next(imageio_ffmpeg.read_frames(str(tmp_path / "v.mp4")))
+    assert meta["codec"] == "h264" and meta["pix_fmt"].startswith("yuv420p")
+
+
+def test_bench_render(demo_run, plugins, tmp_path):
+    from omnire_sim.bench import main
+
+    args = [str(demo_run), "--resolutions", "64x36", "--views", "2", "--warmup", "1", "--threads", "1"]
+    assert main([*args, "--output", str(tmp_path / "a"), "--save-images", str(tmp_path / "ref")], plugins) == 0
+    assert main([*args, "--output", str(tmp_path / "b"), "--compare-to", str(tmp_path / "ref")], plugins) == 0
+    result = json.loads((tmp_path / "b" / "results.json").read_text())[0]
+    size = result["sizes"]["64x36"]
+    assert result["method"] == "streetgs" and result["views"] == 2 and result["peak_mb"] > 0
+    assert size["fps"] > 0 and size["max_abs_diff"] == 0.0
+    assert "| demo | streetgs |" in (tmp_path / "b" / "results.md").read_text()

@@ -290,3 +290,25 @@ def test_lane_shift_and_decoupled_scene_time(street):
     assert np.array_equal(frozen.cam_to_world, path.cam_to_world)
     slow = path.with_scene_speed(scene, 0.5)
     np.testing.assert_allclose(slow.scene_frames, np.arange(8) * 0.5)
+
+
+def test_camera_path_from_a_file(street, tmp_path):
+    from omnire.api import ConfigError
+    from omnire.camerapath import file_path, rig_poses
+
+    scene = street.scene
+    sec = log_seconds(scene)
+    rig = rig_poses(scene).copy()
+    np.savez(tmp_path / "rig.npz", seconds=sec, rig_to_world=rig)
+    path = file_path(scene, tmp_path / "rig.npz")
+    np.testing.assert_allclose(path.cam_to_world, recorded_path(scene).cam_to_world, atol=1e-9)
+    rig[:, 2, 3] += 1.0  # one metre higher, scene frozen at 0.2 s
+    (tmp_path / "up.json").write_text(__import__("json").dumps(
+        {"seconds": sec.tolist(), "rig_to_world": rig.tolist(), "scene_seconds": [0.2] * len(sec)}))
+    up = file_path(scene, tmp_path / "up.json", cameras=["cam1"])
+    assert up.names == ("cam1",)
+    np.testing.assert_allclose(up.cam_to_world[0, :, 2, 3] - path.cam_to_world[1, :, 2, 3], 1.0, atol=1e-9)
+    np.testing.assert_allclose(up.scene_frames, 2.0, atol=1e-9)
+    np.savez(tmp_path / "bad.npz", seconds=sec, rig_to_world=rig[:3])
+    with pytest.raises(ConfigError, match="rig_to_world"):
+        file_path(scene, tmp_path / "bad.npz")
