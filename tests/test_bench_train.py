@@ -12,7 +12,7 @@ from scene_helpers import DEMO_SCENE
 @pytest.mark.skipif(not DEMO_SCENE.is_dir(), reason="demo scene not in this checkout")
 def test_bench_train_compares_methods(tmp_path):
     out = subprocess.run(
-        [sys.executable, "-m", "omnire.cli", "bench", "train", "--methods", "3dgs", "street-fixed-boxes=streetgs --method.nodes.rigid.no-refine-boxes", "--data", str(DEMO_SCENE),
+        [sys.executable, "-m", "omnire.cli", "bench", "train", "--methods", "3dgs", "street-fixed-boxes=streetgs --method.nodes.rigid.no-refine-boxes", "--dataparser", "pandaset", "--data", str(DEMO_SCENE),
          "--dataparser-args=--end-frame 12 --scale 0.25",
          "--method-args=--method.nodes.background.max-lidar-points 3000 --method.nodes.background.num-far-points 300",
          "--steps", "4", "--checkpoints", "2", "--output", str(tmp_path)],
@@ -39,7 +39,7 @@ def test_bench_train_compares_methods(tmp_path):
     # --reuse keeps results whose exact command ran before and trains only the new entry.
     more = subprocess.run(
         [sys.executable, "-m", "omnire.cli", "bench", "train", "--methods", "3dgs", "3dgs-dim=3dgs --method.nodes.background.init-opacity 0.05",
-         "--data", str(DEMO_SCENE), "--dataparser-args=--end-frame 12 --scale 0.25",
+         "--dataparser", "pandaset", "--data", str(DEMO_SCENE), "--dataparser-args=--end-frame 12 --scale 0.25",
          "--method-args=--method.nodes.background.max-lidar-points 3000 --method.nodes.background.num-far-points 300",
          "--steps", "4", "--checkpoints", "2", "--output", str(tmp_path), "--reuse"],
         capture_output=True, text=True, timeout=900, env=dict(os.environ, COLUMNS="200"))

@@ -25,6 +25,13 @@ def test_builtins_register_through_hooks():
     assert {"train", "eval", "render", "plugins", "bench raster", "bench train"} <= set(plugins.commands.names())
 
 
+def test_third_party_plugin_uses_only_the_public_module():
+    import re
+
+    imports = re.findall(r"^\s*(?:from|import) (omnire[\w.]*)", GOOD, re.M)
+    assert imports and set(imports) == {"omnire.api"}
+
+
 def _write_dist(root: Path, dist: str, module: str, body: str) -> Path:
     d = root / dist
     (d / module).mkdir(parents=True)
@@ -46,9 +53,7 @@ def _write_dist(root: Path, dist: str, module: str, body: str) -> Path:
 
 
 GOOD = '''
-    from omnire.hookspecs import hookimpl
-    from omnire.registry import LossSpec, MethodSpec
-    from omnire.builtins import gs3d_method
+    from omnire.api import BackgroundConfig, LossSpec, MethodConfig, MethodSpec, hookimpl
 
 
     def tv(ctx):
@@ -64,9 +69,7 @@ GOOD = '''
     @hookimpl
     def omnire_register_methods(registry):
         def preset():
-            m = gs3d_method()
-            m.loss_weights = {"l1": 1.0, "tiny_tv": 0.01}
-            return m
+            return MethodConfig(nodes={"background": BackgroundConfig()}, loss_weights={"l1": 1.0, "tiny_tv": 0.01})
         registry.register(MethodSpec("tiny3dgs", "3dgs with a TV loss (test plugin)", preset))
 '''
 

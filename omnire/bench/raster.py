@@ -62,6 +62,9 @@ class BenchArgs:
     """Seconds allowed per (rasterizer, case); longer estimated cases are skipped."""
     seed: int = 0
     """Scene seed."""
+    reference: str = ""
+    """Rasterizer the others' speed-ups are measured against (default: the benchmarked one of
+    lowest priority, the reference implementation)."""
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -258,30 +261,32 @@ def main(argv: list[str], plugins) -> int:
                 f"fwd {row['forward_ms']:.1f} ms, bwd {row['backward_ms']:.1f} ms, +{row['peak_extra_mb']:.0f} MB"
             console.print(f"  {name:>8} {n:>7} @ {h}x{w}: {status}")
 
-    # speed-up of each rasterizer against the reference (``torch``) in the same run
-    ref = {(r["gaussians"], r["height"], r["width"]): r for r in results if r["rasterizer"] == "torch"
+    # speed-up of each rasterizer against the reference in the same run
+    benchmarked = sorted({r["rasterizer"] for r in results}, key=lambda n: plugins.rasterizers.get(n).priority)
+    reference = args.reference or (benchmarked[0] if benchmarked else "")
+    ref = {(r["gaussians"], r["height"], r["width"]): r for r in results if r["rasterizer"] == reference
            and not r.get("skipped")}
     for r in results:
         key = (r["gaussians"], r["height"], r["width"])
-        if not r.get("skipped") and key in ref and r["rasterizer"] != "torch":
+        if not r.get("skipped") and key in ref and r["rasterizer"] != reference:
             rr = ref[key]
-            r["speedup_vs_torch"] = (rr["forward_ms"] + rr["backward_ms"]) / (r["forward_ms"] + r["backward_ms"])
+            r["speedup_vs_reference"] = (rr["forward_ms"] + rr["backward_ms"]) / (r["forward_ms"] + r["backward_ms"])
 
     table = Table(title=f"rasterizers on {device}, {threads} threads (medians of {args.repeats})")
     for col in ("rasterizer", "Gaussians", "HxW", "forward ms", "backward ms", "fwd+bwd ms", "peak extra MB",
-                "vs torch", "note"):
+                f"vs {reference}", "note"):
         table.add_column(col, justify="left" if col in ("rasterizer", "note", "HxW") else "right")
     for r in results:
         if r.get("skipped"):
             table.add_row(r["rasterizer"], str(r["gaussians"]), f"{r['height']}x{r['width']}", "-", "-", "-", "-", "-",
                           r["note"])
             continue
-        sp = r.get("speedup_vs_torch")
+        sp = r.get("speedup_vs_reference")
         table.add_row(r["rasterizer"], str(r["gaussians"]), f"{r['height']}x{r['width']}", f"{r['forward_ms']:.1f}",
                       f"{r['backward_ms']:.1f}", f"{r['forward_ms'] + r['backward_ms']:.1f}",
                       f"{r['peak_extra_mb']:.0f}", f"{sp:.1f}x" if sp else "-", r.get("note", ""))
     console.print(table)
-    payload = dict(device=str(device), threads=threads, repeats=args.repeats, warmup=args.warmup,
+    payload = dict(device=str(device), threads=threads, repeats=args.repeats, warmup=args.warmup, reference=reference,
                    coverage=args.coverage, seed=args.seed, torch=torch.__version__,
                    time=time.strftime("%Y-%m-%dT%H:%M:%S"), results=results)
     write_json_atomic(args.output, payload)

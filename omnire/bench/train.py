@@ -33,13 +33,13 @@ from omnire.io.atomic import atomic_write_text
 class TrainBenchArgs:
     """Train several methods with one budget on one scene and compare them."""
 
+    dataparser: Optional[str] = None
+    """Dataparser name (``omnire plugins`` lists them), e.g. pandaset; required unless --report-only."""
+    data: Optional[Path] = None
+    """Scene directory, e.g. data/demo/pandaset_002; required unless --report-only."""
     methods: tuple[str, ...] = ()
     """Methods to compare (default: every registered method). An entry may be a variant
     ``LABEL=METHOD [FLAGS]``, e.g. "omnire-no-smpl=omnire --method.disable smpl" (ablations)."""
-    dataparser: str = "pandaset"
-    """Dataparser name."""
-    data: Path = Path("data/demo/pandaset_002")
-    """Scene directory."""
     dataparser_args: str = "--scale 1.0"
     """Extra dataparser flags as one string, identical for every method: --dataparser-args="--scale 0.5"."""
     method_args: str = ""
@@ -236,6 +236,11 @@ def main(argv: list[str], plugins) -> int:
         kept = {k: type(getattr(args, k))(v) for k, v in saved["args"].items()
                 if k in ("data", "dataparser", "dataparser_args", "steps", "seconds")}
         return _report(dataclasses.replace(args, **kept), saved["results"], console)
+    if args.dataparser is None or args.data is None:
+        from omnire.errors import ConfigError
+
+        raise ConfigError("omnire bench train: --dataparser and --data are required (e.g. --dataparser pandaset "
+                          "--data data/demo/pandaset_002)")
     methods = list(args.methods) or plugins.methods.names()
     try:
         labels = [parse_entry(m)[0] for m in methods]
