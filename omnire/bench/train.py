@@ -233,8 +233,9 @@ def main(argv: list[str], plugins) -> int:
             console.print(f"[red]error:[/] {path}: no results.json to report from (run without --report-only first)")
             return 2
         saved = json.loads(path.read_text())
-        kept = {k: type(getattr(args, k))(v) for k, v in saved["args"].items()
-                if k in ("data", "dataparser", "dataparser_args", "steps", "seconds")}
+        # results.json stores JSON scalars; give them back the fields' types (data is a path).
+        kinds = {"data": Path, "dataparser": str, "dataparser_args": str, "steps": int, "seconds": float}
+        kept = {k: (None if v is None else kinds[k](v)) for k, v in saved["args"].items() if k in kinds}
         return _report(dataclasses.replace(args, **kept), saved["results"], console)
     if args.dataparser is None or args.data is None:
         from omnire.errors import ConfigError
