@@ -310,8 +310,11 @@ class ProcessedDataparser(Dataparser):
         if vals.size != 9:
             raise ProcessedSceneError(f"{path}: expected 9 numbers (fx fy cx cy k1 k2 p1 p2 k3), found {vals.size}")
         fx, fy, cx, cy = vals[:4]
-        if np.any(np.abs(vals[4:]) > 1e-9):
-            self.notes.append(f"camera {cam}: distortion coefficients ignored (images are used as pinhole)")
+        # The reference keeps raw (distorted) images, e.g. Waymo's and NuPlan's: the core
+        # undistorts images and masks to this pinhole K at load (omnire/data/images.py).
+        distortion = vals[4:].copy() if np.any(vals[4:] != 0) else None
+        if distortion is not None and not np.all(np.isfinite(distortion)):
+            raise ProcessedSceneError(f"{path}: distortion k1 k2 p1 p2 k3 must be finite, got {distortion.tolist()}")
         images = [self._image_path(root / "images", f"{t:03d}_{cam}") for t in frames]
         w0, h0 = image_size(images[0])
         W, H = max(1, round(w0 * self.config.scale)), max(1, round(h0 * self.config.scale))
@@ -336,6 +339,7 @@ class ProcessedDataparser(Dataparser):
             width=W,
             height=H,
             intrinsics=K,
+            distortion=distortion,
             cam_to_world=align @ c2w_file,
             image_paths=images,
             timestamps=frames / self.config.fps,

@@ -462,3 +462,31 @@ def test_pixel_centre_convention_per_source(scenes, tmp_path):
     scene, parser = read(dst, file_pixel_centres="integer", scale=0.5)
     assert parser.pixel_centres == "integer"
     np.testing.assert_allclose(scene.cameras[0].intrinsics[:2], gt["intrinsics"][0][:2] * 0.5, atol=1e-8)
+
+
+def test_lens_distortion_is_undistorted_at_load(scenes, tmp_path):
+    """k1 k2 p1 p2 k3 in intrinsics/<cam>.txt (the reference keeps Waymo's distorted images)
+    reach CameraSequence.distortion, and the training image is the undistorted file."""
+    from omnire.data.images import ImageCache, read_image, undistort
+    import torch
+
+    copy = _corrupt_copy(scenes, tmp_path)
+    plain, _ = read(copy)
+    assert all(c.distortion is None for c in plain.cameras)  # all-zero coefficients: pinhole
+    vals = np.loadtxt(copy / "intrinsics" / "0.txt").reshape(-1)
+    vals[4:] = [-0.3, 0.08, 0.001, -0.002, 0.0]
+    np.savetxt(copy / "intrinsics" / "0.txt", vals[None])
+    scene, _ = read(copy)
+    cam = scene.cameras[0]
+    np.testing.assert_allclose(cam.distortion, vals[4:])
+    np.testing.assert_allclose(cam.intrinsics, plain.cameras[0].intrinsics)
+    assert scene.cameras[1].distortion is None
+    loaded = ImageCache().camera_image(cam, 0)
+    raw = torch.from_numpy(read_image(cam.image_paths[0], cam.width, cam.height, 3))
+    expected = undistort(raw, cam.intrinsics, cam.distortion).float() / 255.0
+    assert torch.equal(loaded, expected)
+    assert float((loaded - raw.float() / 255.0).abs().mean()) > 0.01  # a real warp, not a copy
+    vals[4] = np.nan
+    np.savetxt(copy / "intrinsics" / "0.txt", vals[None])
+    with pytest.raises(ProcessedSceneError, match=r"intrinsics/0\.txt.*distortion"):
+        read(copy)
