@@ -5,7 +5,9 @@ Gaussian splats (one scene node per non-actor node and per actor, actors placed 
 box pose, the sky as a far shell of splats); the control panel holds the time slider, the
 per-node and per-actor toggles, the selected actor's identity and edits (hide, move, turn),
 the dataset cameras (click a frustum to look through it), and the server render of the
-current browser view next to it.
+current browser view next to it. The scene shown is a simulation (``omnire_sim``): a
+scenario file's edits, if the viewer was opened with one, and the panel's hide / move edits,
+resolved by :class:`omnire_sim.Simulation` for the browser objects and the server render alike.
 
 Scene updates run on one worker thread that always draws the newest requested state, so
 dragging the time slider never queues stale frames.
@@ -144,7 +146,8 @@ class Viewer:
             self.gui_actor_info = gui.add_markdown("Click an actor's box, or choose one above.")
             self.gui_actor_visible = gui.add_checkbox("Visible", True, disabled=True)
             self.gui_actor_offset = gui.add_vector3("Offset (m)", (0.0, 0.0, 0.0), step=0.1, disabled=True)
-            self.gui_actor_yaw = gui.add_number("Turn (deg)", 0.0, step=1.0, disabled=True)
+            self.gui_actor_yaw = gui.add_number("Turn (deg)", 0.0, step=1.0, disabled=True,
+                                                hint="About the box's up axis through its centre")
             self.gui_actor_reset = gui.add_button("Reset edits of all actors")
             self.gui_actor_toggles = {}
             with gui.add_folder("Visibility per actor", expand_by_default=False):
@@ -187,8 +190,12 @@ class Viewer:
 
     def _info_text(self, title: str, extra: str = "") -> str:
         sc = self.scene
-        return (f"**{title}**  \n{sc.scene.name}: {sc.num_frames} frames, {len(sc.scene.cameras)} cameras, "
-                f"{sc.model.num_gaussians():,} Gaussians, step {sc.recon.step}" + (f"  \n{extra}" if extra else ""))
+        text = (f"**{title}**  \n{sc.scene.name}: {sc.num_frames} frames, {len(sc.scene.cameras)} cameras, "
+                f"{sc.model.num_gaussians():,} Gaussians, step {sc.recon.step}")
+        if sc.base.actors or sc.base.inserts:
+            text += (f"  \nscenario {sc.base.source}: {len(sc.base.actors)} actor edit(s), "
+                     f"{len(sc.base.inserts)} inserted actor(s)")
+        return text + (f"  \n{extra}" if extra else "")
 
     def _set_initial_camera(self, frame: float) -> None:
         _name, c2w, K, _W, H = self.scene.cameras_at(frame)[0]
@@ -216,7 +223,7 @@ class Viewer:
                 try:
                     self.gui_actor_visible.value = not edit.hidden
                     self.gui_actor_offset.value = edit.offset
-                    self.gui_actor_yaw.value = math.degrees(edit.yaw)
+                    self.gui_actor_yaw.value = edit.yaw
                 finally:
                     self._syncing = False
             else:
@@ -237,13 +244,13 @@ class Viewer:
                 return
             edit = ActorEdit(hidden=not self.gui_actor_visible.value,
                              offset=tuple(float(v) for v in self.gui_actor_offset.value),
-                             yaw=math.radians(float(self.gui_actor_yaw.value)))
+                             yaw=float(self.gui_actor_yaw.value))
             self.edit_actor(self.selected, edit)
 
     def edit_actor(self, track_id: str, edit: ActorEdit) -> None:
-        """Apply ``edit`` to ``track_id`` (through the edit model) and redraw."""
-        with self.scene.lock:
-            self.scene.edits.set(track_id, edit)
+        """Set the panel's edit of ``track_id`` (a track id or an inserted actor's id) and
+        redraw: the scene re-resolves its simulation with it."""
+        self.scene.set_edit(track_id, edit)
         toggle = self.gui_actor_toggles.get(track_id)
         if toggle is not None and toggle.value == edit.hidden:
             toggle.value = not edit.hidden
@@ -257,8 +264,7 @@ class Viewer:
                 self.select(track_id)
 
     def reset_edits(self) -> None:
-        with self.scene.lock:
-            self.scene.edits.clear()
+        self.scene.clear_edits()
         for box in self.gui_actor_toggles.values():
             if not box.value:
                 box.value = True
@@ -358,7 +364,8 @@ class Viewer:
                 self._boxes[tid] = handle
             handle.position = c
             handle.wxyz = rotmat_to_quat(R)
-            handle.visible = self.scene.actors[tid].node not in hidden
+            info = self.scene.actors[tid]
+            handle.visible = info.inserted or info.node not in hidden
         for tid in [t for t in self._boxes if t not in boxes]:
             self._boxes.pop(tid).remove()
 

@@ -1,4 +1,5 @@
-"""``omnire view <run>``: the trained scene in the browser."""
+"""``omnire view <run> [--scenario FILE.toml]``: the trained scene, or a simulation of it, in
+the browser."""
 from __future__ import annotations
 
 import dataclasses
@@ -15,7 +16,9 @@ from omnire_viewer.app import ViewerError
 class ViewArgs:
     """Show a trained scene in the browser (viser): Gaussians drawn by the browser, a time
     slider, per-node and per-actor toggles, the dataset cameras, actor selection and edits,
-    and server renders with the real rasterizer."""
+    and server renders with the real rasterizer. With --scenario, the scene as `omnire sim`
+    would render it (removals, moves, trajectories, stops, inserted actors, pedestrian motions
+    following the time slider)."""
 
     run_dir: tyro.conf.Positional[Path]
     """Run directory written by omnire train."""
@@ -25,6 +28,9 @@ class ViewArgs:
     """Port to listen on (0: any free port)."""
     checkpoint: Optional[Path] = None
     """Checkpoint file (default: the newest intact one in the run directory)."""
+    scenario: Optional[Path] = None
+    """Scenario file (TOML, the format of omnire sim, docs/simulation.md): show the simulated
+    scene. Its [camera] and [output] tables are not used (the browser is the camera)."""
     frame: float = 0.0
     """Frame shown first."""
     max_gaussians: int = 3_000_000
@@ -63,16 +69,24 @@ def main(argv: list[str], plugins) -> int:
 
     args = tyro.cli(ViewArgs, args=argv, prog="omnire view")
     check_run_dir(args.run_dir, args.checkpoint)
+    scenario = None
+    if args.scenario is not None:
+        from omnire_sim import load_scenario
+
+        scenario = load_scenario(args.scenario)  # format errors before anything is loaded
     check_port(args.host, args.port)
     console = output_console()
     recon = Reconstruction.from_run(args.run_dir, plugins, args.checkpoint, device=args.device)
     if not 0 <= args.frame <= recon.scene.num_frames - 1:
         raise ViewerError(f"--frame {args.frame}: outside the scene's frames 0..{recon.scene.num_frames - 1}")
-    scene = ViewerScene(recon, max_gaussians=args.max_gaussians, sky_count=args.sky_splats)
+    # the scenario is resolved against the scene here (unknown tracks, times outside the log ...)
+    scene = ViewerScene(recon, max_gaussians=args.max_gaussians, sky_count=args.sky_splats, scenario=scenario,
+                        plugins=plugins)
     viewer = Viewer(scene, args.host, args.port, title=f"{recon.run_info.method} - {args.run_dir.name}",
                     frame=args.frame, verbose=False)
+    shown = f", scenario {args.scenario}" if scenario is not None else ""
     console.print(f"omnire view: {viewer.url}  ({recon.run_info.method}, step {recon.step}, "
-                  f"{recon.num_gaussians():,} Gaussians; Ctrl-C stops)", highlight=False)
+                  f"{recon.num_gaussians():,} Gaussians{shown}; Ctrl-C stops)", highlight=False)
     try:
         start = time.monotonic()
         while not args.seconds or time.monotonic() - start < args.seconds:

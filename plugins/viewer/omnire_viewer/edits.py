@@ -1,30 +1,36 @@
-"""Hiding and moving actors: the viewer's one seam to scene editing.
+"""Hiding and moving actors: the viewer's panel state, turned into the simulation edit model.
 
-Actor nodes split drawing in two (:meth:`ActorNode.state_at`: where the tracks put the
-actors at a moment; :meth:`ActorNode.gaussians_for`: draw given actors in a given state).
-An edit replaces the state between the two: :func:`apply_edits` is the only place the
-viewer changes what is drawn, and both the browser objects and the server render go
-through it. When the simulation edit model (``omnire sim``, plugins/sim) lands, this
-function is what to point at it; until then it implements hide and move itself.
+The viewer keeps what its panel shows per actor (:class:`ActorEdit`: hidden, a world offset,
+a turn) in an :class:`EditModel`. What is drawn never comes from there directly:
+:meth:`EditModel.scenario` writes those edits as an ``omnire_sim`` :class:`Scenario` (hide =
+``remove = true``; move = ``Placement(offset_world=..., yaw=...)``), on top of the scenario
+file the viewer was opened with, if any, and an :class:`omnire_sim.Simulation` resolves it.
+The browser objects (:func:`drawn_actors`) and the server render (``Simulation.render``) both
+read that one simulation, so the viewer has no edit semantics of its own.
 """
 from __future__ import annotations
 
 import dataclasses
-import math
+from collections.abc import Iterator
+from typing import Optional
 
 import torch
 
 from omnire.api import ActorNode, ActorState, SceneTime
+from omnire_sim import ActorEdit as SimActorEdit
+from omnire_sim import Placement, Scenario, Simulation
+from omnire_sim.edits import Where
 
 
 @dataclasses.dataclass(frozen=True)
 class ActorEdit:
-    """One actor's edit.
+    """One actor's edit as the panel shows it.
 
     Attributes:
-        hidden: not drawn at all.
-        offset: (3,) metres added to the box centre, world frame (x, y, z up).
-        yaw: radians about the world vertical through the box centre.
+        hidden: not drawn at all (the simulation's ``remove``).
+        offset: (3,) metres added to the box centre, world frame (x, y, z up)
+            (``Placement.offset_world``).
+        yaw: degrees about the box's up axis through its centre (``Placement.yaw``).
     """
 
     hidden: bool = False
@@ -35,24 +41,41 @@ class ActorEdit:
     def is_identity(self) -> bool:
         return not self.hidden and not any(self.offset) and self.yaw == 0.0
 
+    def placement(self) -> Placement:
+        return Placement(offset_world=tuple(float(v) for v in self.offset), yaw=float(self.yaw))
+
+
+def _then(first: Placement, extra: Placement) -> Placement:
+    """``first`` followed by ``extra`` (a world offset and a turn about the box's up axis):
+    turning about the box centre does not move it, so world offsets and yaws add."""
+    return Placement(first.offset, tuple(a + b for a, b in zip(first.offset_world, extra.offset_world, strict=True)),
+                     first.yaw + extra.yaw)
+
 
 class EditModel:
-    """Edits by track id (track ids are unique in a scene)."""
+    """Edits by actor key (a track id of the scene, or an inserted actor's id); every
+    change bumps :attr:`version`, which tells the scene to re-resolve its simulation."""
 
     def __init__(self) -> None:
         self._edits: dict[str, ActorEdit] = {}
+        self.version = 0
 
-    def get(self, track_id: str) -> ActorEdit:
-        return self._edits.get(track_id, ActorEdit())
+    def get(self, key: str) -> ActorEdit:
+        return self._edits.get(key, ActorEdit())
 
-    def set(self, track_id: str, edit: ActorEdit) -> None:
+    def set(self, key: str, edit: ActorEdit) -> None:
+        if self.get(key) == edit:
+            return
         if edit.is_identity:
-            self._edits.pop(track_id, None)
+            self._edits.pop(key, None)
         else:
-            self._edits[track_id] = edit
+            self._edits[key] = edit
+        self.version += 1
 
     def clear(self) -> None:
-        self._edits.clear()
+        if self._edits:
+            self._edits.clear()
+            self.version += 1
 
     def __bool__(self) -> bool:
         return bool(self._edits)
@@ -60,28 +83,80 @@ class EditModel:
     def items(self):
         return self._edits.items()
 
+    def scenario(self, base: Optional[Scenario] = None) -> Scenario:
+        """``base`` (a scenario file's edits; default none) with these edits applied:
 
-def yaw_matrix(angle: float, dtype=torch.float32, device="cpu") -> torch.Tensor:
-    c, s = math.cos(angle), math.sin(angle)
-    return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=dtype, device=device)
+        - a scene actor: hidden -> ``remove``; moved -> its placement followed by the
+          offset and turn (on top of the base's trajectory, clock and motion, if any);
+        - an inserted actor (by insert id): hidden -> the insertion dropped (the actor it
+          replaces, if any, stays removed); moved -> its placement likewise.
+        """
+        base = base or Scenario()
+        actors = {e.track: e for e in base.actors}
+        inserts = {i.id: i for i in base.inserts}
+        for key, edit in self._edits.items():
+            where = Where("viewer", f"actor {key}")
+            if key in inserts:
+                ins = inserts[key]
+                if edit.hidden:
+                    del inserts[key]
+                    if ins.replace is not None:
+                        actors[ins.replace] = SimActorEdit(ins.replace, remove=True, where=where)
+                else:
+                    inserts[key] = dataclasses.replace(ins, placement=_then(ins.placement, edit.placement()))
+            elif edit.hidden:
+                actors[key] = SimActorEdit(key, remove=True, where=where)
+            elif key in actors:
+                if not actors[key].remove:  # removed by the scenario: nothing to move
+                    old = actors[key]
+                    actors[key] = dataclasses.replace(old, placement=_then(old.placement, edit.placement()))
+            else:
+                actors[key] = SimActorEdit(key, placement=edit.placement(), where=where)
+        return dataclasses.replace(base, actors=tuple(actors.values()), inserts=tuple(inserts.values())).check()
 
 
-def apply_edits(edits: EditModel, node: ActorNode, state: ActorState, t: SceneTime) -> ActorState:
-    """The state ``node`` draws at ``t`` after ``edits``: hidden actors are dropped, moved
-    ones turned by their yaw about their box centre and shifted by their offset
-    (R' = Rz(yaw) R, t' = t + offset). Returns ``state`` itself when nothing applies."""
-    if not edits or len(state.ids) == 0:
-        return state
-    track_ids = [node.track_ids[i] for i in state.ids.tolist()]
-    if not any(not edits.get(tid).is_identity for tid in track_ids):
-        return state
-    keep = [k for k, tid in enumerate(track_ids) if not edits.get(tid).hidden]
-    sel = torch.as_tensor(keep, dtype=torch.long, device=state.ids.device)
-    R, tr = state.R[sel].clone(), state.t[sel].clone()
-    for row, k in enumerate(keep):
-        edit = edits.get(track_ids[k])
-        if edit.yaw:
-            R[row] = yaw_matrix(edit.yaw, R.dtype, R.device) @ R[row]
-        if any(edit.offset):
-            tr[row] = tr[row] + torch.as_tensor(edit.offset, dtype=tr.dtype, device=tr.device)
-    return ActorState(state.ids[sel], R, tr, None if state.body is None else state.body[sel])
+@dataclasses.dataclass
+class DrawnActors:
+    """Actors one node draws together at a moment: ``state`` (P actors) at ``moment``;
+    ``keys`` (P,) their track / insert ids; ``owner`` the run whose node it is (another run
+    for inserted actors, whose ``node_name`` is then None)."""
+
+    node_name: Optional[str]
+    node: ActorNode
+    owner: object
+    state: ActorState
+    moment: SceneTime
+    keys: list[str]
+
+
+@torch.no_grad()
+def drawn_actors(sim: Simulation, time: SceneTime) -> Iterator[DrawnActors]:
+    """Every actor the simulation draws at scene moment ``time``, with the state and moment
+    its node draws it at: per actor node the unedited actors together (recorded state), each
+    edited actor alone (``SimActor.state``), then the inserted actors. The same split as
+    ``Simulation.parts``, kept per actor so the browser can place each one by its box."""
+    recon = sim.recon
+    t = time.seconds - float(recon.scene.frame_timestamps[0])
+    edited: dict[str, dict[int, object]] = {}
+    for actor in sim.actors:
+        if not actor.inserted:
+            edited.setdefault(actor.node_name, {})[actor.instance] = actor
+    for name, node in recon.model.nodes.items():
+        if not isinstance(node, ActorNode):
+            continue
+        mine = edited.get(name, {})
+        state = node.state_at(time)
+        keep = [k for k, i in enumerate(state.ids.tolist()) if i not in mine]
+        if keep:
+            sel = torch.tensor(keep, dtype=torch.long, device=state.ids.device)
+            rest = ActorState(state.ids[sel], state.R[sel], state.t[sel], None if state.body is None else state.body[sel])
+            yield DrawnActors(name, node, recon, rest, time, [node.track_ids[i] for i in rest.ids.tolist()])
+        for actor in mine.values():
+            got = None if actor.removed else actor.state(t, time)
+            if got is not None:
+                yield DrawnActors(name, node, recon, got[0], got[1], [actor.key])
+    for actor in sim.actors:
+        if actor.inserted and not actor.removed:
+            got = actor.state(t, time)
+            if got is not None:
+                yield DrawnActors(None, actor.node, actor.owner, got[0], got[1], [actor.key])

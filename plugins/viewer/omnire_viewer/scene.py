@@ -2,11 +2,12 @@
 node and per actor, each in its own frame with a world pose; actor boxes for picking;
 dataset cameras; and the server render of any camera with the real rasterizer.
 
-Actors are drawn by their node at the identity pose (their box frame at the moment: posed
-and skinned for pedestrians, deformed for deformable actors) and placed by their box pose,
-so moving a rigid actor along its track only moves its object; objects whose Gaussians
-change (pedestrians re-skinned for a new frame) are rebuilt. Every state goes through
-:func:`omnire_viewer.edits.apply_edits` first.
+Everything drawn is a simulated scene (:class:`omnire_sim.Simulation`: a scenario file's
+edits, if any, and the panel's hide / move edits, see :mod:`omnire_viewer.edits`). Actors are
+drawn by their node at the identity pose (their box frame at the moment: posed and skinned
+for pedestrians, deformed for deformable actors) and placed by the box pose the simulation
+gives them, so moving a rigid actor only moves its object; objects whose Gaussians change
+(pedestrians re-skinned for a new frame or gait) are rebuilt.
 """
 from __future__ import annotations
 
@@ -24,12 +25,11 @@ from omnire.api import (
     Camera,
     EnvironmentNode,
     Gaussians,
-    RasterSettings,
     SceneTime,
-    Splats,
     rotmat_to_quat,
 )
-from omnire_viewer.edits import EditModel, apply_edits
+from omnire_sim import Scenario, Simulation
+from omnire_viewer.edits import ActorEdit, DrawnActors, EditModel, drawn_actors
 from omnire_viewer.splats import SplatArrays, sky_splats, splat_arrays
 
 KEYS = ("means", "quats", "scales", "opacities", "sh0", "shN")
@@ -46,11 +46,21 @@ class ActorInfo:
     instance: int
     size: tuple[float, float, float]
     frames: tuple[int, int]
-    """First and last frame it is present."""
+    """First and last frame it is present (in its own run's log)."""
+    inserted_from: Optional[str] = None
+    """An actor the scenario inserts (``track_id`` is then its insert id): its track id in
+    the run it comes from."""
+
+    @property
+    def inserted(self) -> bool:
+        return self.inserted_from is not None
 
     def describe(self) -> str:
-        return (f"**{self.track_id}**: {self.class_name} ({self.category}), node `{self.node}`, "
-                f"box {self.size[0]:.1f} x {self.size[1]:.1f} x {self.size[2]:.1f} m, "
+        box = f"box {self.size[0]:.1f} x {self.size[1]:.1f} x {self.size[2]:.1f} m"
+        if self.inserted:
+            return (f"**{self.track_id}** (inserted by the scenario: track {self.inserted_from} of another run, "
+                    f"its `{self.node}` node): {self.class_name} ({self.category}), {box}")
+        return (f"**{self.track_id}**: {self.class_name} ({self.category}), node `{self.node}`, {box}, "
                 f"frames {self.frames[0]}-{self.frames[1]}")
 
 
@@ -61,7 +71,8 @@ class SceneObject:
     ``version`` changes whenever ``splats`` do (the app re-sends the object then)."""
 
     name: str
-    node: str
+    node: Optional[str]
+    """The node toggle it follows (None: an inserted actor, which belongs to no node here)."""
     track_id: Optional[str]
     splats: SplatArrays
     position: np.ndarray
@@ -92,53 +103,85 @@ def camera_from_view(position, wxyz, fov: float, width: int, height: int, device
 
 
 class ViewerScene:
-    """The viewer's model of a :class:`~omnire.runtime.Reconstruction`.
+    """The viewer's model of a :class:`~omnire.runtime.Reconstruction`, as a simulation.
+
+    What is drawn comes from an :class:`omnire_sim.Simulation` of ``scenario`` (a scenario
+    file's edits, or none) with the panel's actor edits on top (:meth:`simulation`).
 
     Args:
         recon: the scene runtime (read only).
-        edits: the actor edits (shared with the app).
+        edits: the panel's actor edits (shared with the app).
         max_gaussians: the browser is sent at most this many Gaussians of non-actor nodes
             (a seeded uniform subsample above it; the server render always uses all).
-        sky_splats: splats of the browser's sky shell (0: no sky in the browser).
+        sky_count: splats of the browser's sky shell (0: no sky in the browser).
+        scenario: the simulation to show (default: the scene as reconstructed).
+        plugins: loads the runs a scenario inserts actors from.
     """
 
     def __init__(self, recon, edits: Optional[EditModel] = None, max_gaussians: int = 3_000_000,
-                 sky_count: int = 10_000) -> None:
+                 sky_count: int = 10_000, scenario: Optional[Scenario] = None, plugins=None) -> None:
         self.edits = edits if edits is not None else EditModel()
+        self.base = scenario if scenario is not None else Scenario()
+        self.plugins = plugins
         self.max_gaussians = max_gaussians
         self.sky_count = sky_count
         self.lock = threading.RLock()
         self.eye: Optional[torch.Tensor] = None
         self._cache: dict[str, _Cached] = {}
         self._counter = 0
+        self._assets: dict = {}
         self.set_recon(recon)
 
     # ------------------------------------------------------------------ structure
     def set_recon(self, recon) -> None:
-        """Show ``recon`` (e.g. a new training snapshot); every object is rebuilt."""
+        """Show ``recon`` (e.g. a new training snapshot); every object is rebuilt. A scenario
+        that does not fit ``recon`` raises its ScenarioError (naming line and field)."""
         with self.lock:
             self.recon = recon
             self.scene = recon.scene
             self.model = recon.model
             self._cache.clear()
-            tracks = {t.track_id: t for t in self.scene.tracks}
+            self._sim = None
+            base = Simulation(recon, self.base, self.plugins, assets=self._assets)  # checks the scenario
+            self._assets = base.assets
             self.actors: dict[str, ActorInfo] = {}
             self.node_kinds: dict[str, str] = {}
+            removed = {a.key for a in base.actors if a.removed and not a.inserted}
             for name, node in self.model.nodes.items():
                 if isinstance(node, EnvironmentNode):
                     self.node_kinds[name] = "environment"
                 elif isinstance(node, ActorNode):
                     self.node_kinds[name] = "actors"
                     for i, tid in enumerate(node.track_ids):
-                        tr = tracks.get(tid)
-                        frames = np.flatnonzero(tr.present) if tr is not None else np.zeros(1, int)
-                        self.actors[tid] = ActorInfo(tid, tr.class_name if tr else "?", tr.category if tr else "?",
-                                                     name, i, tuple(float(s) for s in (tr.size if tr else (1, 1, 1))),
-                                                     (int(frames.min()), int(frames.max())))
+                        if tid not in removed:  # not in the simulated scene: nothing to select
+                            self.actors[tid] = _actor_info(recon, tid, name, i)
                 else:
                     self.node_kinds[name] = "gaussians"
+            for actor in base.actors:
+                if actor.inserted:
+                    self.actors[actor.key] = _actor_info(actor.owner, actor.node.track_ids[actor.instance],
+                                                         actor.node_name, actor.instance, actor.key)
             if self.eye is None:
                 self.eye = torch.as_tensor(self.scene.cameras[0].cam_to_world[0, :3, 3], dtype=torch.float32)
+            self._sim, self._sim_version = (base, self.edits.version) if not self.edits else (None, -1)
+
+    def simulation(self) -> Simulation:
+        """The simulation drawn now: the scenario with the panel's edits (re-resolved after
+        every edit)."""
+        with self.lock:
+            if self._sim is None or self._sim_version != self.edits.version:
+                version = self.edits.version
+                self._sim = Simulation(self.recon, self.edits.scenario(self.base), self.plugins, assets=self._assets)
+                self._sim_version = version
+            return self._sim
+
+    def set_edit(self, key: str, edit: ActorEdit) -> None:
+        with self.lock:
+            self.edits.set(key, edit)
+
+    def clear_edits(self) -> None:
+        with self.lock:
+            self.edits.clear()
 
     @property
     def num_frames(self) -> int:
@@ -154,8 +197,8 @@ class ViewerScene:
             self._cache.clear()
 
     # ------------------------------------------------------------------ objects
-    def _splats_for(self, name: str, g: Gaussians, world_means: Optional[torch.Tensor],
-                    budget: bool) -> tuple[SplatArrays, int]:
+    def _splats_for(self, name: str, g: Gaussians, world_means: Optional[torch.Tensor], budget: bool,
+                    sh_degree: int) -> tuple[SplatArrays, int]:
         """Cached splats of ``g`` under ``name``: rebuilt only when the tensors changed."""
         tensors = tuple(getattr(g, k) for k in KEYS)
         versions = tuple(t._version for t in tensors)
@@ -172,48 +215,51 @@ class ViewerScene:
         if budget and len(g) > self.max_gaussians:
             gen = torch.Generator().manual_seed(0)
             keep = torch.randperm(len(g), generator=gen)[: self.max_gaussians].sort().values
-        splats = splat_arrays(g, world_means, self.eye, self.recon.sh_degree(), keep)
+        splats = splat_arrays(g, world_means, self.eye, sh_degree, keep)
         self._counter += 1
         self._cache[name] = _Cached(tensors, versions, splats, self._counter)
         return splats, self._counter
 
-    def edited_state(self, node: ActorNode, t: SceneTime) -> ActorState:
-        return apply_edits(self.edits, node, node.state_at(t), t)
+    @staticmethod
+    def object_name(group: DrawnActors, key: str) -> str:
+        return f"/actors/{group.node_name}/{key}" if group.node_name is not None else f"/actors/insert/{key}"
 
     @torch.no_grad()
     def objects_at(self, frame: float) -> dict[str, SceneObject]:
-        """Every object present at ``frame`` after the edits, by scene name
-        (``/nodes/<node>`` or ``/actors/<node>/<track id>``)."""
+        """Every object of the simulated scene present at ``frame``, by scene name
+        (``/nodes/<node>``, ``/actors/<node>/<track id>``, ``/actors/insert/<insert id>``)."""
         t = self.time(frame)
         out: dict[str, SceneObject] = {}
         with self.lock:
+            sim = self.simulation()
             for name, node in self.model.nodes.items():
-                kind = self.node_kinds[name]
-                if kind == "gaussians":
-                    res = node.gaussians_at(t, None, None)
-                    if res is None or len(res.gaussians) == 0:
-                        continue
-                    key = f"/nodes/{name}"
-                    splats, version = self._splats_for(key, res.gaussians, None, budget=True)
-                    out[key] = SceneObject(key, name, None, splats, np.zeros(3), np.array([1.0, 0, 0, 0]), version)
-                elif kind == "actors":
-                    state = self.edited_state(node, t)
-                    for tid, g, R, tr in self._actor_locals(node, state, t):
-                        key = f"/actors/{name}/{tid}"
-                        world = g.means @ R.T + tr
-                        splats, version = self._splats_for(key, g, world, budget=False)
-                        out[key] = SceneObject(key, name, tid, splats, tr.double().numpy(),
-                                               rotmat_to_quat(R.double()).numpy(), version)
+                if self.node_kinds[name] != "gaussians":
+                    continue
+                res = node.gaussians_at(t, None, None)
+                if res is None or len(res.gaussians) == 0:
+                    continue
+                key = f"/nodes/{name}"
+                splats, version = self._splats_for(key, res.gaussians, None, True, self.recon.sh_degree())
+                out[key] = SceneObject(key, name, None, splats, np.zeros(3), np.array([1.0, 0, 0, 0]), version)
+            for group in drawn_actors(sim, t):
+                for tid, g, R, tr in self._actor_locals(group):
+                    key = self.object_name(group, tid)
+                    world = g.means @ R.T + tr
+                    splats, version = self._splats_for(key, g, world, False, group.owner.sh_degree())
+                    out[key] = SceneObject(key, group.node_name, tid, splats, tr.double().cpu().numpy(),
+                                           rotmat_to_quat(R.double().cpu()).numpy(), version)
         return out
 
-    def _actor_locals(self, node: ActorNode, state: ActorState, t: SceneTime):
-        """(track id, box-frame Gaussians, R (3, 3), t (3,)) per actor of ``state``."""
+    def _actor_locals(self, group: DrawnActors):
+        """(key, box-frame Gaussians, R (3, 3), t (3,)) per actor of ``group``: its node draws
+        them at the identity pose (posed bodies, deformations and moment kept)."""
+        state, node = group.state, group.node
         if len(state.ids) == 0:
             return
         P = len(state.ids)
-        local = ActorState(state.ids, torch.eye(3, dtype=state.R.dtype).expand(P, 3, 3).contiguous(),
-                           torch.zeros_like(state.t), state.body)
-        res = node.gaussians_for(local, t)
+        local = ActorState(state.ids, torch.eye(3, dtype=state.R.dtype, device=state.R.device).expand(P, 3, 3)
+                           .contiguous(), torch.zeros_like(state.t), state.body)
+        res = node.gaussians_for(local, group.moment)
         if res is None or res.rows is None:
             return
         instance = node.gaussian_buffers["instance"][res.rows]
@@ -223,7 +269,7 @@ class ViewerScene:
         for i, c in zip(ids.tolist(), counts.tolist(), strict=True):
             g = Gaussians(*(getattr(res.gaussians, k)[start:start + c] for k in KEYS))
             k = slot[int(i)]
-            yield node.track_ids[int(i)], g, state.R[k], state.t[k]
+            yield group.keys[k], g, state.R[k], state.t[k]
             start += c
 
     def sky(self) -> Optional[SplatArrays]:
@@ -243,18 +289,15 @@ class ViewerScene:
     # ------------------------------------------------------------------ boxes, picking, cameras
     @torch.no_grad()
     def actor_boxes(self, frame: float) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Box (R (3, 3), centre (3,), size (3,)) of every actor drawn at ``frame`` (edited)."""
+        """Box (R (3, 3), centre (3,), size (3,)) of every actor drawn at ``frame`` in the
+        simulated scene, by track id / insert id."""
         t = self.time(frame)
         boxes = {}
         with self.lock:
-            for name, node in self.model.nodes.items():
-                if self.node_kinds[name] != "actors":
-                    continue
-                state = self.edited_state(node, t)
-                for k, i in enumerate(state.ids.tolist()):
-                    tid = node.track_ids[i]
-                    boxes[tid] = (state.R[k].double().numpy(), state.t[k].double().numpy(),
-                                  np.asarray(self.actors[tid].size))
+            for group in drawn_actors(self.simulation(), t):
+                for k, key in enumerate(group.keys):
+                    boxes[key] = (group.state.R[k].double().cpu().numpy(), group.state.t[k].double().cpu().numpy(),
+                                  np.asarray(self.actors[key].size))
         return boxes
 
     def pick(self, origin, direction, frame: float) -> Optional[str]:
@@ -281,43 +324,19 @@ class ViewerScene:
     # ------------------------------------------------------------------ server render
     @torch.no_grad()
     def render(self, camera: Camera, frame: float, hidden: frozenset[str] = frozenset()) -> np.ndarray:
-        """(H, W, 3) float image of ``camera`` at ``frame`` by the real rasterizer, SH and sky
-        included; nodes in ``hidden`` left out; actor edits applied."""
+        """(H, W, 3) float image of ``camera`` at ``frame``: ``Simulation.render`` of the
+        simulated scene (the run's rasterizer, SH and sky included); nodes in ``hidden`` left
+        out (inserted actors belong to no node of this run and stay)."""
         t = self.time(frame)
         with self.lock:
-            if not self.edits:
-                return self.recon.render(camera, t, hidden=hidden).rgb.clamp(0, 1).cpu().numpy()
-            return self._render_edited(camera, t, hidden).clamp(0, 1).cpu().numpy()
+            return self.simulation().render(camera, t, hidden=frozenset(hidden)).rgb.clamp(0, 1).cpu().numpy()
 
-    def _render_edited(self, camera: Camera, t: SceneTime, hidden: frozenset[str]) -> torch.Tensor:
-        """The runtime's composition (Gaussians of every node, SH at the camera, rasterize,
-        environment under the Gaussians) with the actor states edited."""
-        parts = []
-        for name, node in self.model.nodes.items():
-            kind = self.node_kinds[name]
-            if name in hidden or kind == "environment":
-                continue
-            if kind == "actors":
-                state = self.edited_state(node, t)
-                res = node.gaussians_for(state, t, camera) if len(state.ids) else None
-            else:
-                res = node.gaussians_at(t, camera, None)
-            if res is not None and len(res.gaussians):
-                parts.append(res.gaussians)
-        env = [n for n in self.environment_nodes() if n not in hidden]
-        device = camera.device
-        background = None if env else torch.tensor(self.recon.method.background_color, dtype=torch.float32,
-                                                   device=device)
-        H, W = camera.height, camera.width
-        if parts:
-            g = Gaussians.cat(parts)
-            splats = Splats(g.means, g.quats, g.activated_scales, g.activated_opacities,
-                            g.colors(camera.center, self.recon.sh_degree()))
-            out = self.model.rasterizer.rasterize(splats, camera, RasterSettings(background=background))
-            rgb, alpha = out.rgb, out.alpha
-        else:
-            rgb = (background if background is not None else torch.zeros(3, device=device)).expand(H, W, 3)
-            alpha = torch.zeros(H, W, 1, device=device)
-        for name in env:
-            rgb = rgb + (1.0 - alpha) * self.model.nodes[name].render_environment(camera, t)
-        return rgb
+
+def _actor_info(owner, track: str, node: str, instance: int, insert: Optional[str] = None) -> ActorInfo:
+    """The panel's description of ``track`` of ``owner``'s scene (an inserted actor: keyed
+    by its insert id)."""
+    tr = next((t for t in owner.scene.tracks if t.track_id == track), None)
+    frames = np.flatnonzero(tr.present) if tr is not None and tr.present.any() else np.zeros(1, int)
+    return ActorInfo(insert or track, tr.class_name if tr else "?", tr.category if tr else "?", node, instance,
+                     tuple(float(s) for s in (tr.size if tr is not None else (1, 1, 1))),
+                     (int(frames.min()), int(frames.max())), inserted_from=track if insert else None)

@@ -1,6 +1,7 @@
 """omnire view: the scene drawn by a real browser (headless Chromium) agrees with the server's
-rasterizer; the time slider moves and re-skins actors; hide/move edits; picking; the
-training observer; clear errors for a run without checkpoint and a busy port."""
+rasterizer; the time slider moves and re-skins actors; hide/move edits are the simulation's
+(omnire_sim) and --scenario shows a simulated scene; picking; the training observer; clear
+errors for a run without checkpoint, a busy port and a bad scenario."""
 from __future__ import annotations
 
 import math
@@ -12,7 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from omnire.api import Reconstruction, UserError
+from omnire.api import Reconstruction, UserError, rotmat_to_quat
+from omnire_sim import ActorEdit as SimActorEdit
+from omnire_sim import Placement, Scenario, Simulation, load_scenario
 from omnire_viewer.app import PortInUseError, Viewer
 from omnire_viewer.cli import main as view_main
 from omnire_viewer.edits import ActorEdit
@@ -182,13 +185,52 @@ def test_time_slider_moves_rigid_actors_and_reskins_pedestrians(viewer, recon):
     assert drawn == set(boxes)
 
 
+def sim_rgb(recon, camera, frame, scenario, plugins=None) -> np.ndarray:
+    """(H, W, 3) what ``omnire sim`` renders of ``scenario`` through ``camera`` at ``frame``."""
+    return Simulation(recon, scenario, plugins).render(camera, recon.time(frame)).rgb.clamp(0, 1).numpy()
+
+
+@torch.no_grad()
+def assert_placed_like_the_sim(viewer, sim, frame):
+    """Every actor object in the browser sits where the simulation puts that actor's box at
+    ``frame`` (the recorded pose for unedited actors), and no other actor is drawn."""
+    recon = viewer.scene.recon
+    time_ = recon.time(frame)
+    t = time_.seconds - float(recon.scene.frame_timestamps[0])
+    expected = {}
+    edited = {(a.node_name, a.instance): a for a in sim.actors if not a.inserted}
+    for name, node in recon.model.nodes.items():
+        if name not in ("rigid", "smpl"):
+            continue
+        st = node.state_at(time_)
+        for k, i in enumerate(st.ids.tolist()):
+            if (name, i) not in edited:
+                expected[f"/actors/{name}/{node.track_ids[i]}"] = (st.R[k], st.t[k])
+    for actor in sim.actors:
+        got = None if actor.removed else actor.state(t, time_)
+        if got is not None:
+            key = f"/actors/insert/{actor.key}" if actor.inserted else f"/actors/{actor.node_name}/{actor.key}"
+            expected[key] = (got[0].R[0], got[0].t[0])
+    drawn = {n: h for n, (h, _v) in viewer._handles.items() if n.startswith("/actors/")}
+    assert set(drawn) == set(expected)
+    for key, (R, tr) in expected.items():
+        np.testing.assert_allclose(drawn[key].position, tr.double().numpy(), atol=1e-5, err_msg=key)
+        q = np.asarray(drawn[key].wxyz)
+        q_sim = rotmat_to_quat(R.double()).numpy()
+        assert min(np.abs(q - q_sim).max(), np.abs(q + q_sim).max()) < 1e-5, key
+
+
 def test_hide_move_and_pick(viewer, recon):
+    """Hide and move go through the simulation: the server render and the browser objects
+    are those of omnire_sim's Simulation with remove / Placement for the same tracks."""
     sc = viewer.scene
     cam = recon.scene.cameras[0]
     camera = recon.camera(recon.scene.views([FRAME])[0])
     boxes = sc.actor_boxes(FRAME)
     # the car nearest the camera, and a ray from the camera through its box centre
     car = min((t for t in boxes if sc.actors[t].node == "rigid"),
+              key=lambda t: np.linalg.norm(boxes[t][1] - cam.cam_to_world[FRAME, :3, 3]))
+    ped = min((t for t in boxes if sc.actors[t].node == "smpl"),
               key=lambda t: np.linalg.norm(boxes[t][1] - cam.cam_to_world[FRAME, :3, 3]))
     origin = cam.cam_to_world[FRAME, :3, 3]
     assert sc.pick(origin, boxes[car][1] - origin, FRAME) == car
@@ -197,27 +239,136 @@ def test_hide_move_and_pick(viewer, recon):
     assert car in viewer.gui_actor_info.content and sc.actors[car].class_name in viewer.gui_actor_info.content
 
     base = sc.render(camera, FRAME)
-    viewer.edit_actor(car, ActorEdit(hidden=True))
+    with torch.no_grad():  # no edits: exactly the reconstruction's render
+        np.testing.assert_allclose(base, recon.render(camera, recon.time(FRAME)).rgb.clamp(0, 1).numpy(), atol=1e-6)
+
+    # hide, through the panel's Visible checkbox of the selected car
+    viewer.gui_actor_visible.value = False
+    viewer._edit_selected()  # what the checkbox's callback runs (idempotent)
+    assert sc.edits.get(car).hidden
     assert viewer.wait_idle()
     assert f"/actors/rigid/{car}" not in viewer._handles
+    assert car not in sc.actor_boxes(FRAME)
     hidden = sc.render(camera, FRAME)
+    np.testing.assert_allclose(hidden, sim_rgb(recon, camera, FRAME, Scenario((SimActorEdit(car, remove=True),))),
+                               atol=1e-6)
     changed = np.abs(hidden - base).max(axis=-1) > 1e-4
     assert changed.any()
-    assert car not in sc.actor_boxes(FRAME)
     # pixels change only where cars are drawn (the alpha footprint of the rigid node)
     with torch.no_grad():
         cars = recon.render(camera, recon.time(FRAME), hidden=frozenset({"background", "smpl", "sky"}))
     assert not (changed & ~(cars.alpha[..., 0].numpy() > 1e-4)).any()
 
-    viewer.edit_actor(car, ActorEdit(offset=(0.0, 0.0, 2.0)))
+    # move and turn the car, move a pedestrian: the same pixels and poses as the simulation
+    viewer.edit_actor(car, ActorEdit(offset=(0.5, -0.4, 0.3), yaw=30.0))
+    viewer.edit_actor(ped, ActorEdit(offset=(0.0, 1.5, 0.0), yaw=-45.0))
     assert viewer.wait_idle()
+    scenario = Scenario((SimActorEdit(car, placement=Placement(offset_world=(0.5, -0.4, 0.3), yaw=30.0)),
+                         SimActorEdit(ped, placement=Placement(offset_world=(0.0, 1.5, 0.0), yaw=-45.0))))
+    moved = sc.render(camera, FRAME)
+    np.testing.assert_allclose(moved, sim_rgb(recon, camera, FRAME, scenario), atol=1e-6)
+    assert np.abs(moved - base).max() > 1e-3
+    assert_placed_like_the_sim(viewer, Simulation(recon, scenario), FRAME)
     handle, _ = viewer._handles[f"/actors/rigid/{car}"]
-    np.testing.assert_allclose(handle.position, boxes[car][1] + [0, 0, 2.0], atol=1e-5)
-    np.testing.assert_allclose(sc.actor_boxes(FRAME)[car][1], boxes[car][1] + [0, 0, 2.0], atol=1e-5)
-    assert np.abs(sc.render(camera, FRAME) - base).max() > 1e-3  # the server render moved it too
+    np.testing.assert_allclose(handle.position, boxes[car][1] + [0.5, -0.4, 0.3], atol=1e-5)
+    np.testing.assert_allclose(sc.actor_boxes(FRAME)[car][1], boxes[car][1] + [0.5, -0.4, 0.3], atol=1e-5)
+    # the panel shows the selected car's edit
+    viewer.select(car)
+    assert viewer.gui_actor_visible.value and viewer.gui_actor_yaw.value == 30.0
     viewer.reset_edits()
     assert viewer.wait_idle()
     np.testing.assert_allclose(sc.render(camera, FRAME), base, atol=1e-6)
+
+
+SCENARIO = """# the viewer's scenario test
+[[actor]]
+track = "car_000"
+remove = true
+
+[[actor]]
+track = "car_001"
+stop_at = 0.3
+brake = 0.1
+
+[[actor]]
+track = "pedestrian_013"
+trajectory = [{{t = 0.0, x = 14.0, y = -6.0}}, {{t = 0.7, x = 14.0, y = -2.0}}]
+motion = "gait"
+
+[[insert]]
+id = "guest"
+run = "{run}"
+track = "car_002"
+trajectory = [[0.0, 20.0, 3.0, -1.1], [0.7, 26.0, 3.0, -1.1]]
+"""
+
+
+def test_scenario_drives_the_view(tiny_run, recon, plugins, tmp_path):
+    """``omnire view --scenario``: removals, a stop, a new trajectory with a gait and an
+    inserted actor follow the time slider in the browser objects, and the server render
+    is the simulation's; the panel's edits apply on top."""
+    path = tmp_path / "scenario.toml"
+    path.write_text(SCENARIO.format(run=tiny_run.as_posix()))
+    scenario = load_scenario(path)
+    sim = Simulation(recon, scenario, plugins)
+    sc = ViewerScene(recon, scenario=scenario, plugins=plugins)
+    assert "car_000" not in sc.actors and sc.actors["guest"].inserted
+    viewer = Viewer(sc, "127.0.0.1", 0, frame=1.0, verbose=False)
+    try:
+        camera = recon.camera(recon.scene.views([1])[0])
+        versions = {}
+        for frame in (1.0, 3.0, 6.0):
+            viewer.gui_frame.value = frame
+            viewer._dirty.set()
+            assert viewer.wait_idle()
+            assert_placed_like_the_sim(viewer, sim, frame)
+            t = frame * 0.1
+            np.testing.assert_allclose(viewer._handles["/actors/insert/guest"][0].position,
+                                       [20.0 + 6.0 * t / 0.7, 3.0, -1.1], atol=1e-4)
+            np.testing.assert_allclose(viewer._handles["/actors/smpl/pedestrian_013"][0].position[:2],
+                                       [14.0, -6.0 + 4.0 * t / 0.7], atol=1e-4)
+            versions[frame] = viewer._handles["/actors/smpl/pedestrian_013"][1]
+            rgb = sc.render(camera, frame)
+            np.testing.assert_allclose(rgb, sim.render(camera, recon.time(frame)).rgb.clamp(0, 1).numpy(), atol=1e-6)
+            with torch.no_grad():
+                recorded = recon.render(camera, recon.time(frame)).rgb.clamp(0, 1).numpy()
+            print(f"frame {frame}: simulated vs recorded max abs diff {np.abs(rgb - recorded).max():.3f}")
+            assert np.abs(rgb - recorded).max() > 1e-2, "the edits are in view"
+        assert len(set(versions.values())) == 3, "the walking pedestrian is re-skinned as time moves"
+        stopped = [sc.actor_boxes(f)["car_001"][1] for f in (3.0, 6.0)]
+        np.testing.assert_allclose(stopped[0], stopped[1], atol=1e-6)  # stopped at 0.3 s
+        assert np.abs(sc.actor_boxes(6.0)["car_003"][1] - sc.actor_boxes(3.0)["car_003"][1]).max() > 0.5
+
+        # the panel's edits go on top of the scenario
+        viewer.edit_actor("pedestrian_013", ActorEdit(offset=(0.0, 1.0, 0.0)))
+        viewer.edit_actor("guest", ActorEdit(hidden=True))
+        assert viewer.wait_idle()
+        assert "/actors/insert/guest" not in viewer._handles
+        np.testing.assert_allclose(viewer._handles["/actors/smpl/pedestrian_013"][0].position[:2],
+                                   [14.0, -6.0 + 4.0 * 0.6 / 0.7 + 1.0], atol=1e-4)
+        on_top = sc.edits.scenario(scenario)
+        assert [i.id for i in on_top.inserts] == []
+        assert_placed_like_the_sim(viewer, Simulation(recon, on_top, plugins), 6.0)
+    finally:
+        viewer.close()
+
+
+def test_bad_scenario_is_one_line_and_exit_2(tiny_run, tmp_path, capsys):
+    """Scenario errors are the simulation's own (line and field named), printed by the
+    command line as one line, exit status 2: a malformed file before anything is loaded, a
+    track the scene does not have once it is."""
+    from omnire.cli import main as omnire_main
+
+    for text, needles in (('[[actor]]\ntrack = "car_000"\nremov = true\n', ("line 3", "remov")),
+                          ('\n[[actor]]\ntrack = "nobody"\nremove = true\n', ("line 3", "'track'", "nobody"))):
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text)
+        code = omnire_main(["view", str(tiny_run), "--scenario", str(bad), "--port", "0", "--seconds", "1"])
+        err = capsys.readouterr().err
+        errors = [line for line in err.splitlines() if line.startswith("error:")]
+        assert code == 2, err
+        assert len(errors) == 1 and all(n in errors[0] for n in needles), err
+        assert "bad.toml" in errors[0] and "Traceback" not in err
 
 
 def test_training_observer_shows_snapshots(recon, plugins):
@@ -262,18 +413,22 @@ def test_clear_errors(tiny_run, plugins, recon, tmp_path):
             Viewer(ViewerScene(recon), "127.0.0.1", port, verbose=False)
 
 
-def test_view_command_serves_the_page(tiny_run, plugins):
-    """``omnire view`` end to end: loads the run, serves the viewer's page on the port asked
-    for, and stops after --seconds."""
+def test_view_command_serves_the_page(tiny_run, plugins, tmp_path):
+    """``omnire view --scenario`` end to end: loads the run and the scenario, serves the
+    viewer's page on the port asked for, and stops after --seconds."""
     import threading
     import urllib.request
+
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text('[[actor]]\ntrack = "car_000"\nremove = true\n[[actor]]\ntrack = "car_001"\nstop_at = 0.2\n')
 
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     result = {}
     thread = threading.Thread(target=lambda: result.setdefault("code", view_main(
-        [str(tiny_run), "--port", str(port), "--seconds", "4", "--frame", "1.5"], plugins)))
+        [str(tiny_run), "--port", str(port), "--seconds", "4", "--frame", "1.5", "--scenario", str(scenario)],
+        plugins)))
     thread.start()
     page, deadline = None, time.monotonic() + 30
     while page is None and time.monotonic() < deadline and thread.is_alive():
