@@ -9,7 +9,9 @@ Gaussians in the scene, and the process's peak resident memory.
 
 ``--save-images DIR`` keeps every render (float32 .npy) and ``--compare-to DIR`` reports the
 largest absolute pixel difference against such a set (same runs, views and sizes): a
-speed-up must not change the pixels.
+speed-up must not change the pixels. ``--training-path`` renders with autograd on, through
+the path training uses (and every render used before the no-grad inference path of
+``SceneModel.render_parts``): the reference the inference path is compared with.
 """
 from __future__ import annotations
 
@@ -50,6 +52,8 @@ class BenchRenderArgs:
     """Keep every render as float32 .npy under this directory (a reference for --compare-to)."""
     compare_to: Optional[Path] = None
     """Report the largest absolute pixel difference against renders saved by --save-images."""
+    training_path: bool = False
+    """Render with autograd on (the training path) instead of the inference path: a reference for --compare-to."""
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -75,7 +79,7 @@ def pick_views(scene, count: int) -> list:
 
 
 def measure(run: Path, sizes: list[tuple[int, int]], views: int, warmup: int, threads: int,
-            save: Optional[Path], compare: Optional[Path]) -> dict:
+            save: Optional[Path], compare: Optional[Path], training_path: bool = False) -> dict:
     """Render ``run`` at every size (in this process); see the module docstring."""
     import torch
 
@@ -88,7 +92,8 @@ def measure(run: Path, sizes: list[tuple[int, int]], views: int, warmup: int, th
     out = {"run": str(run), "method": recon.run_info.method, "rasterizer": recon.model.rasterizer.name,
            "gaussians": recon.num_gaussians(), "step": recon.step, "views": len(chosen), "sizes": {}}
     key = run.resolve().name
-    with torch.no_grad():
+    out["path"] = "training" if training_path else "inference"
+    with torch.set_grad_enabled(training_path):
         for w, h in sizes:
             cams = [(v, recon.camera(v).resized(w, h)) for v in chosen]
             for v, cam in cams[:warmup]:
@@ -144,7 +149,8 @@ def main(argv: list[str], plugins=None) -> int:
             result_file = Path(tmp) / "result.json"
             spec = {"run": str(run), "sizes": sizes, "views": args.views, "warmup": args.warmup,
                     "threads": args.threads, "save": str(args.save_images) if args.save_images else None,
-                    "compare": str(args.compare_to) if args.compare_to else None, "result": str(result_file)}
+                    "compare": str(args.compare_to) if args.compare_to else None, "result": str(result_file),
+                    "training_path": args.training_path}
             env = dict(os.environ, OMP_NUM_THREADS=str(args.threads))
             proc = subprocess.run([sys.executable, "-m", "omnire_sim.bench", json.dumps(spec)], env=env,
                                   capture_output=True, text=True)
@@ -165,7 +171,7 @@ def _worker(spec_json: str) -> None:
     spec = json.loads(spec_json)
     result = measure(Path(spec["run"]), [tuple(s) for s in spec["sizes"]], spec["views"], spec["warmup"],
                      spec["threads"], Path(spec["save"]) if spec["save"] else None,
-                     Path(spec["compare"]) if spec["compare"] else None)
+                     Path(spec["compare"]) if spec["compare"] else None, spec["training_path"])
     atomic_write_text(spec["result"], json.dumps(result))
 
 

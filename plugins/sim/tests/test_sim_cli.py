@@ -213,3 +213,10 @@ def test_bench_render(demo_run, plugins, tmp_path):
     assert result["method"] == "streetgs" and result["views"] == 2 and result["peak_mb"] > 0
     assert size["fps"] > 0 and size["max_abs_diff"] == 0.0
     assert "| demo | streetgs |" in (tmp_path / "b" / "results.md").read_text()
+    # the inference path against the training path's pixels (autograd on)
+    assert main([*args, "--output", str(tmp_path / "c"), "--training-path", "--save-images", str(tmp_path / "train")],
+                plugins) == 0
+    assert json.loads((tmp_path / "c" / "results.json").read_text())[0]["path"] == "training"
+    assert main([*args, "--output", str(tmp_path / "d"), "--compare-to", str(tmp_path / "train")], plugins) == 0
+    diff = json.loads((tmp_path / "d" / "results.json").read_text())[0]["sizes"]["64x36"]["max_abs_diff"]
+    assert 0.0 <= diff <= 1e-4
