@@ -52,7 +52,7 @@ class TrainerConfig:
     """Show the rich progress bar."""
     observers: tuple[str, ...] = ()
     """Training observers to run, registered by plugins (``omnire plugins`` lists them; e.g.
-    viewer: the scene live in the browser)."""
+    viewer: the scene live in the browser). Each also answers to ``--<name>`` (``--viewer``)."""
     observe_every: int = 100
     """Steps between observer updates."""
     observer_options: tuple[str, ...] = ()
@@ -143,8 +143,28 @@ def train_cli_type(plugins):
     return _subcommand_union(method_types)
 
 
+def expand_observer_flags(argv: list[str], observer_names: list[str]) -> list[str]:
+    """``--<observer>`` (e.g. ``--viewer``) is short for ``--trainer.observers <observer>``;
+    several, and an explicit ``--trainer.observers`` list, are merged into one list."""
+    flags = {f"--{name}": name for name in observer_names}
+    wanted = [flags[a] for a in argv if a in flags]
+    if not wanted:
+        return list(argv)
+    out = [a for a in argv if a not in flags]
+    if "--trainer.observers" in out:
+        i = out.index("--trainer.observers") + 1
+        listed = []
+        while i < len(out) and not out[i].startswith("--"):
+            listed.append(out[i])
+            i += 1
+        extra = [n for n in dict.fromkeys(wanted) if n not in listed]
+        return out[:i] + extra + out[i:]
+    return out + ["--trainer.observers", *dict.fromkeys(wanted)]
+
+
 def parse_train_args(argv: list[str], plugins) -> TrainConfig:
     """``argv`` of ``omnire train`` (without the command) -> a validated :class:`TrainConfig`."""
+    argv = expand_observer_flags(argv, plugins.train_observers.names())
     parsed = tyro.cli(
         train_cli_type(plugins), args=argv, prog="omnire train",
         config=(tyro.conf.OmitSubcommandPrefixes, tyro.conf.CascadeSubcommandArgs, tyro.conf.SuppressFixed),
