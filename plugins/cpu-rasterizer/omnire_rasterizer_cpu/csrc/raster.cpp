@@ -549,6 +549,7 @@ void render_backward(const Camera& cam, int D, int tilesX, int tilesY, const S* 
         const V mx = P::set1(g[0]), my = P::set1(g[1]);
         const V ca = P::set1(g[2]), cb = P::set1(g[3]), cc = P::set1(g[4]);
         const V op = P::set1(g[5]), zz = P::set1(g[6]);
+        const V pthr = P::set1(g[9]);  // as render_forward: lanes below it fail the alpha test
         V s_mx = zero, s_my = zero, s_ca = zero, s_cb = zero, s_cc = zero, s_op = zero, s_z = zero;
         V s_ax = zero, s_ay = zero;
         for (int c = 0; c < D; ++c) vcol[c] = zero;
@@ -562,6 +563,9 @@ void render_backward(const Camera& cam, int D, int tilesX, int tilesY, const S* 
             // Must match render_forward operation for operation (same skip/stop decisions).
             const V dx = P::set1(S(x0 + vg * L) + S(0.5)) + lane - mx;
             const V power = mhalf * ca * dx * dx - cdy * dx + hdy2;
+            // the forward's skip: every live lane below the power floor fails the alpha test
+            // for sure, so the exp is not needed (the decisions stay the forward's)
+            if (!P::any(P::mand(m, P::ge(power, pthr)))) continue;
             const V G = P::exp(power);
             const V raw = op * G;
             const V al = P::vmin(amax, raw);
