@@ -46,4 +46,6 @@ def omnire_register_commands(registry) -> None:
                                   commands.bench_raster_main))
     registry.register(CommandSpec("bench train", "methods against each other: error against training time",
                                   commands.bench_train_main))
+    registry.register(CommandSpec("bench step", "per-stage time of a training step (fused / unfused render paths)",
+                                  commands.bench_step_main))
 

@@ -1,4 +1,4 @@
-"""The core's commands: train, eval, render, plugins, bench raster / train / skip.
+"""The core's commands: train, eval, render, plugins, bench raster / train / step.
 
 User errors (:class:`~omnire.errors.UserError`) propagate to the CLI, which prints them as
 one line; anything else is a bug and keeps its traceback.
@@ -182,4 +182,10 @@ def bench_train_main(argv: list[str], plugins) -> int:
     from omnire.bench import train
 
     return int(train.main(argv, plugins) or 0)
+
+
+def bench_step_main(argv: list[str], plugins) -> int:
+    from omnire.bench import step
+
+    return int(step.main(argv, plugins) or 0)
 

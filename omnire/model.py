@@ -104,6 +104,10 @@ def enabled_node_specs(method, node_registry) -> dict[str, Any]:
 class SceneModel(nn.Module):
     """The nodes of one scene, and how a view of them is rendered.
 
+    ``use_fused_training`` (default True; an instance may set it False): take the fused
+    training path (:meth:`fused_training`) when the rasterizer offers it; False forces
+    :meth:`assemble` + :meth:`composite` with autograd (comparisons, ``omnire bench step``).
+
     Args:
         method: the :class:`~omnire.method.MethodConfig`.
         scene: the scene (prepared: see :meth:`prepare`).
@@ -113,6 +117,8 @@ class SceneModel(nn.Module):
         rasterizer, device, seed: as named.
         restoring: build empty nodes to receive a checkpoint (no LiDAR or image reading).
     """
+
+    use_fused_training: bool = True
 
     def __init__(self, method, scene: SceneData, specs: dict[str, Any], images, rasterizer: Rasterizer,
                  device: torch.device, seed: int = 0, assignment: Optional[dict[str, list[str]]] = None,
@@ -192,7 +198,7 @@ class SceneModel(nn.Module):
         """Render the scene at moment ``t`` through ``camera``. ``step`` is the training
         step (None: the trained model, e.g. for evaluation and rendering); nodes in
         ``hidden`` are not drawn (e.g. the sky, for renders of the Gaussians alone)."""
-        if self.fast_inference():
+        if self.fast_inference() or self.fused_training():
             parts = [(name, node.gaussians_at(t, camera, step)) for name, node in self.gaussian_nodes().items()
                      if name not in hidden]
             return self.render_parts(parts, camera, t, sh_degree, hidden)
@@ -207,11 +213,27 @@ class SceneModel(nn.Module):
         plugins/sim/tests/test_fast_render.py)."""
         return not torch.is_grad_enabled() and hasattr(self.rasterizer, "rasterize_gaussians")
 
+    def fused_training(self) -> bool:
+        """True when renders with autograd take the fused training path: the rasterizer
+        renders raw Gaussians in parts with gradients (``rasterize_gaussians_train``:
+        activation, SH colour and view culling in its kernel, nothing concatenated). Same
+        pixels and gradients as :meth:`gather` + :meth:`composite` up to float rounding, and
+        the same densification statistics: the slices cover the node outputs uncut, rows
+        the kernel rejected have radius 0 and no AbsGrad, and ``num_gaussians`` counts the
+        rows not rejected (tests/test_fused_training.py,
+        plugins/cpu-rasterizer/tests/test_fused_training.py). ``use_fused_training = False``
+        turns it off."""
+        return (self.use_fused_training and torch.is_grad_enabled()
+                and hasattr(self.rasterizer, "rasterize_gaussians_train"))
+
     def render_parts(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Camera, t: SceneTime,
                      sh_degree: int = 3, hidden: frozenset[str] = frozenset()) -> RenderResult:
         """Render node outputs (name, output or None), e.g. actors in edited states: the
-        inference path when :meth:`fast_inference`, else :meth:`assemble` + :meth:`composite`."""
+        inference path when :meth:`fast_inference`, the fused training path when
+        :meth:`fused_training`, else :meth:`assemble` + :meth:`composite`."""
         if not self.fast_inference():
+            if self.fused_training():
+                return self._render_fused_training(parts, camera, t, sh_degree, hidden)
             g, slices, outputs = self.assemble(parts, camera)
             return self.composite(g, slices, outputs, camera, t, sh_degree, hidden)
         gs, slices, outputs, start = [], [], {}, 0
@@ -231,6 +253,30 @@ class SceneModel(nn.Module):
         # the rasterizer culls to the view itself (cull_to_view): num_gaussians counts those kept
         out, kept = self.rasterizer.rasterize_gaussians(gs, camera, degree, RasterSettings(background=background),
                                                         cull=self.method.cull_to_view)
+        rgb = out.rgb
+        for node in env.values():
+            rgb = rgb + (1.0 - out.alpha) * node.render_environment(camera, t)
+        return RenderResult(rgb, out.depth, out.alpha, out.absgrad2d, out.radii, slices, kept, outputs)
+
+    def _render_fused_training(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Camera, t: SceneTime,
+                               sh_degree: int, hidden: frozenset[str]) -> RenderResult:
+        """:meth:`render_parts` with autograd through ``rasterize_gaussians_train``."""
+        gs, slices, outputs, start = [], [], {}, 0
+        for name, out in parts:
+            if out is None:
+                continue
+            outputs[name] = out
+            if len(out.gaussians) == 0:
+                continue
+            gs.append(out.gaussians)
+            slices.append(NodeSlice(name, start, start + len(out.gaussians), out.rows))
+            start += len(out.gaussians)
+        if not gs:
+            return self.composite(None, slices, outputs, camera, t, sh_degree, hidden)
+        env = {n: m for n, m in self.environment_nodes().items() if n not in hidden}
+        background = None if env else self._background
+        out, kept = self.rasterizer.rasterize_gaussians_train(gs, camera, sh_degree, RasterSettings(background=background),
+                                                              cull=self.method.cull_to_view)
         rgb = out.rgb
         for node in env.values():
             rgb = rgb + (1.0 - out.alpha) * node.render_environment(camera, t)

@@ -22,7 +22,7 @@ def test_builtins_register_through_hooks():
     assert "3dgs" in plugins.methods and "background" in plugins.node_types
     assert {"l1", "dssim", "depth", "opacity"} <= set(plugins.losses.names())
     assert plugins.methods.provenance("3dgs").distribution == "omnire"
-    assert {"train", "eval", "render", "plugins", "bench raster", "bench train"} <= set(plugins.commands.names())
+    assert {"train", "eval", "render", "plugins", "bench raster", "bench train", "bench step"} <= set(plugins.commands.names())
 
 
 def test_third_party_plugin_uses_only_the_public_module():

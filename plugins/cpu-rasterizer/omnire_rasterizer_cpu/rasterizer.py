@@ -13,7 +13,7 @@ from typing import Optional
 import torch
 
 from omnire.camera import Camera
-from omnire.gaussians import Gaussians
+from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
 
 from ._build import load_extension
@@ -65,6 +65,53 @@ class _RasterizeFn(torch.autograd.Function):
         )
         ctx.absgrad.add_(absgrad.to(ctx.absgrad.dtype))
         return g_means, g_quats, g_scales, g_opac, g_colors, None, None, None, None
+
+
+class _RasterizeGaussiansFn(torch.autograd.Function):
+    """Training path from raw Gaussians in G groups (node outputs, not concatenated).
+
+    Inputs: ``meta`` (non-tensor settings, see :meth:`CpuRasterizer.rasterize_gaussians_train`),
+    ``absgrad`` (N, 2) buffer the backward adds AbsGrad into, then 6 tensors per group: means
+    (n,3), quats (n,4), log-scales (n,3), opacity logits (n,), sh0 (n,1,3), shN (n,K,3).
+    Outputs: acc (H,W,3), depth numerator (H,W), alpha (H,W), radii (N,) int32, means2d (N,2),
+    Gaussians not rejected (1,) int64 (the last three carry no gradient). Gradients reach every raw tensor of every group.
+    """
+
+    @staticmethod
+    def forward(ctx, meta, absgrad, *tensors):
+        sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads = meta
+        G = len(tensors) // 6
+        groups = [list(tensors[k::6]) for k in range(6)]
+        (acc, dn, alpha, radii, means2d, rec, col, gidx, offsets, ids, bad, kept) = _ext().forward_train(
+            *groups, sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads)
+        if int(bad[0]) >= 0:
+            raise RasterInputError(f"Gaussian row {int(bad[0])} (of the {G} concatenated parts) has non-finite "
+                                   "parameters or colour; refusing to render a NaN image")
+        ctx.meta = meta
+        ctx.absgrad = absgrad
+        ctx.num_groups = G
+        ctx.save_for_backward(*tensors, rec, col, gidx, offsets, ids, acc, dn, alpha)
+        ctx.mark_non_differentiable(radii, means2d, kept)
+        return acc, dn, alpha, radii, means2d, kept
+
+    @staticmethod
+    def backward(ctx, g_acc, g_dn, g_alpha, _g_radii, _g_means2d, _g_kept):
+        sh_degree, center, viewmat, K, width, height, near, far, eps2d, _cull, nthreads = ctx.meta
+        saved = ctx.saved_tensors
+        G = ctx.num_groups
+        tensors = saved[: 6 * G]
+        rec, col, gidx, offsets, ids, acc, dn, alpha = saved[6 * G:]
+        groups = [list(tensors[k::6]) for k in range(6)]
+
+        def grad_or_zeros(g, like):
+            return torch.zeros_like(like) if g is None else g.contiguous().to(like.dtype)
+
+        grads = _ext().backward_train(
+            *groups, sh_degree, center, viewmat, K, width, height, near, far, eps2d,
+            rec, col, gidx, offsets, ids, acc, dn, alpha,
+            grad_or_zeros(g_acc, acc), grad_or_zeros(g_dn, dn), grad_or_zeros(g_alpha, alpha), nthreads)
+        ctx.absgrad.add_(grads[-1].to(ctx.absgrad.dtype))
+        return (None, None, *grads[:-1])
 
 
 class CpuRasterizer:
@@ -156,3 +203,48 @@ class CpuRasterizer:
         depth = dn / alpha.clamp_min(1e-10)
         return RenderOutput(rgb=rgb, depth=depth[..., None], alpha=alpha[..., None], radii=radii, means2d=means2d,
                             absgrad2d=torch.zeros(len(radii), 2)), int(kept[0])
+
+    def rasterize_gaussians_train(self, parts: list[Gaussians], camera: Camera, sh_degree: int,
+                                  settings: RasterSettings = RasterSettings(), cull: bool = True
+                                  ) -> tuple[RenderOutput, int]:
+        """Training rendering of raw Gaussians in parts (node outputs, not concatenated), with
+        gradients to every raw tensor of every part: activations (exp of log-scales, sigmoid
+        of opacity logits), SH colours from the camera centre (bands up to ``sh_degree``;
+        the view direction uses the detached means, as :meth:`Gaussians.colors`) and the
+        rejection of Gaussians that cannot reach the image (``cull``) run in the kernel.
+        Same pixels as :meth:`rasterize` on the activated, concatenated Gaussians with colours
+        from :meth:`Gaussians.colors`, up to float rounding; ``radii`` and ``absgrad2d`` (N,)
+        index the parts in order (rejected rows: radius 0, no AbsGrad). float64 parts run in
+        double precision (gradient checks). Returns the output and the number of Gaussians
+        not rejected."""
+        if not parts:
+            raise RasterInputError("rasterize_gaussians_train: no parts")
+        if camera.device.type != "cpu" or any(p.means.device.type != "cpu" for p in parts):
+            raise RasterInputError("the cpu rasterizer needs CPU tensors")
+        dtype = torch.float64 if parts[0].means.dtype == torch.float64 else torch.float32
+        for p in parts:
+            for k in ("means", "quats", "scales", "opacities", "sh0", "shN"):
+                t = getattr(p, k)
+                if not t.is_floating_point():
+                    raise RasterInputError(f"{k}: dtype {t.dtype}, expected a floating type")
+            if p.means.ndim != 2 or p.means.shape[1] != 3 or p.scales.shape != p.means.shape:
+                raise RasterInputError(f"means / scales: shapes {tuple(p.means.shape)} / {tuple(p.scales.shape)}, "
+                                       "expected (N, 3)")
+        # shN of a part drawn with band 0 only takes no part (as in Gaussians.colors): detached,
+        # so no gradient (not even zeros, which an optimiser would count as a step) reaches it
+        tensors = [(t.detach() if k == "shN" and min(int(sh_degree), p.sh_degree) == 0 else t).to(dtype).contiguous()
+                   for p in parts for k, t in zip(GAUSSIAN_KEYS, (getattr(p, k) for k in GAUSSIAN_KEYS))]
+        N = sum(len(p) for p in parts)
+        absgrad = torch.zeros(N, 2, dtype=dtype)
+        meta = (int(sh_degree), camera.center.detach().to(torch.float64).contiguous(),
+                camera.world_to_cam.detach().to(torch.float64).contiguous(),
+                camera.K.detach().to(torch.float64).contiguous(), int(camera.width), int(camera.height),
+                float(settings.near), float(settings.far), float(settings.eps2d), bool(cull),
+                int(self.num_threads or torch.get_num_threads()))
+        acc, dn, alpha, radii, means2d, kept = _RasterizeGaussiansFn.apply(meta, absgrad, *tensors)
+        rgb = acc
+        if settings.background is not None:
+            rgb = acc + (1.0 - alpha)[..., None] * settings.background.to(dtype)
+        depth = dn / alpha.clamp_min(1e-10)
+        return RenderOutput(rgb=rgb, depth=depth[..., None], alpha=alpha[..., None], radii=radii, means2d=means2d,
+                            absgrad2d=absgrad), int(kept[0])

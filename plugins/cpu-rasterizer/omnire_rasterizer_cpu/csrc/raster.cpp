@@ -549,6 +549,7 @@ void render_backward(const Camera& cam, int D, int tilesX, int tilesY, const S* 
         const V mx = P::set1(g[0]), my = P::set1(g[1]);
         const V ca = P::set1(g[2]), cb = P::set1(g[3]), cc = P::set1(g[4]);
         const V op = P::set1(g[5]), zz = P::set1(g[6]);
+        const V pthr = P::set1(g[9]);  // as render_forward: lanes below it fail the alpha test
         V s_mx = zero, s_my = zero, s_ca = zero, s_cb = zero, s_cc = zero, s_op = zero, s_z = zero;
         V s_ax = zero, s_ay = zero;
         for (int c = 0; c < D; ++c) vcol[c] = zero;
@@ -562,6 +563,9 @@ void render_backward(const Camera& cam, int D, int tilesX, int tilesY, const S* 
             // Must match render_forward operation for operation (same skip/stop decisions).
             const V dx = P::set1(S(x0 + vg * L) + S(0.5)) + lane - mx;
             const V power = mhalf * ca * dx * dx - cdy * dx + hdy2;
+            // the forward's skip: every live lane below the power floor fails the alpha test
+            // for sure, so the exp is not needed (the decisions stay the forward's)
+            if (!P::any(P::mand(m, P::ge(power, pthr)))) continue;
             const V G = P::exp(power);
             const V raw = op * G;
             const V al = P::vmin(amax, raw);
@@ -835,7 +839,8 @@ inline void sh_color(const float* sh0, const float* shN, int degree, const float
 // Jacobian, |R_view| = 1), plus 4 px (project_all's radius exceeds 3 sqrt(lambda_max) by up
 // to 1.7 px through its eigenvalue floor and 1 px through ceil); such Gaussians get an empty
 // tile rect in project_all, so skipping them changes nothing.
-inline bool off_screen(const float* mean, float max_scale, const Camera& cam, double near, double far,
+template <typename S>
+inline bool off_screen(const S* mean, double max_scale, const Camera& cam, double near, double far,
                        double eps2d) {
   const double m[3] = {double(mean[0]), double(mean[1]), double(mean[2])};
   double t[3];
@@ -897,10 +902,9 @@ std::vector<at::Tensor> forward_gaussians_impl(const std::vector<at::Tensor>& me
       for (int j = 0; j < 3; ++j) finite = finite && std::isfinite(mp[3 * i + j]) && std::isfinite(sp[3 * i + j]);
       for (int j = 0; j < 4; ++j) finite = finite && std::isfinite(qp[4 * i + j]);
       if (!finite) bad = std::min(bad, k);
+      // records and tile rects are read only where radii > 0: left unwritten elsewhere
       radp[k] = 0;
       float* g9 = recp + REC * k;
-      for (int j = 0; j < REC; ++j) g9[j] = 0.0f;
-      for (int j = 0; j < 4; ++j) rectp[4 * k + j] = 0;
       m2p[2 * k] = m2p[2 * k + 1] = 0.0f;
       depth_f[k] = 0.0f;
       if (cull && finite &&
@@ -958,6 +962,304 @@ std::vector<at::Tensor> forward_gaussians_impl(const std::vector<at::Tensor>& me
   render_forward<float>(cam, 3, tilesX, tilesY, recp, colp, offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
                         acc.data_ptr<float>(), dn.data_ptr<float>(), aa.data_ptr<float>(), nthreads);
   return {acc, dn, aa, radii, means2d, at::full({1}, -1, at::kLong), at::full({1}, N - rejected, at::kLong)};
+}
+
+// ---------------------------------------------------------------------------------------
+// Training path from raw Gaussians in groups (autograd: rasterizer.py, _RasterizeGaussiansFn).
+// One call does what the torch side used to do around the rasterizer: activations (exp of
+// log-scales, sigmoid of opacity logits), SH colour seen from the camera centre, rejection of
+// Gaussians that cannot reach the image (as the inference path), projection, binning and
+// compositing; nothing is concatenated. Only the M drawn Gaussians get a record (compacted,
+// ``gidx`` maps them back), so the backward's per-thread gradient buffers are M x K instead of
+// N x K. The backward goes from the pixel gradients to the raw parameters of every group:
+// projection backward, d exp / d sigmoid, and the SH basis times the colour gradient (the
+// view direction uses the detached mean, as omnire.gaussians.Gaussians.colors does).
+
+// The 16 real SH basis values (signs included) of omnire.gaussians.eval_sh for unit d:
+// colour_c = sum_j b_j coeff_jc, bands above ``degree`` zero.
+constexpr double SHD_C0 = 0.28209479177387814, SHD_C1 = 0.4886025119029199;
+constexpr double SHD_C2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+                              0.5462742152960396};
+constexpr double SHD_C3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+                              -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
+
+template <typename S>
+inline void sh_basis(int degree, const S d[3], S b[16]) {
+  const S x = d[0], y = d[1], z = d[2];
+  for (int j = 0; j < 16; ++j) b[j] = S(0);
+  b[0] = S(SHD_C0);
+  if (degree < 1) return;
+  b[1] = -S(SHD_C1) * y; b[2] = S(SHD_C1) * z; b[3] = -S(SHD_C1) * x;
+  if (degree < 2) return;
+  const S xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+  b[4] = S(SHD_C2[0]) * xy; b[5] = S(SHD_C2[1]) * yz; b[6] = S(SHD_C2[2]) * (2 * zz - xx - yy);
+  b[7] = S(SHD_C2[3]) * xz; b[8] = S(SHD_C2[4]) * (xx - yy);
+  if (degree < 3) return;
+  b[9] = S(SHD_C3[0]) * y * (3 * xx - yy); b[10] = S(SHD_C3[1]) * xy * z; b[11] = S(SHD_C3[2]) * y * (4 * zz - xx - yy);
+  b[12] = S(SHD_C3[3]) * z * (2 * zz - 3 * xx - 3 * yy); b[13] = S(SHD_C3[4]) * x * (4 * zz - xx - yy);
+  b[14] = S(SHD_C3[5]) * z * (xx - yy); b[15] = S(SHD_C3[6]) * x * (xx - 3 * yy);
+}
+
+// Unit view direction from the camera centre to ``mean``, normalised as Gaussians.colors does.
+template <typename S>
+inline void view_dir(const S* mean, const double center[3], S d[3]) {
+  for (int j = 0; j < 3; ++j) d[j] = S(mean[j] - S(center[j]));
+  const S nrm = std::max(S(std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])), S(1e-8));
+  for (int j = 0; j < 3; ++j) d[j] = d[j] / nrm;
+}
+
+template <typename S>
+inline S sigmoid_of(S x) { return S(1) / (S(1) + std::exp(-x)); }
+
+// One group of raw Gaussians: row-major pointers, its row count, SH bases beyond the DC
+// term (K1 = (deg + 1)^2 - 1) and the bands used (min(deg, requested)).
+template <typename S>
+struct RawGroup {
+  const S *means, *quats, *scales, *opac, *sh0, *shN;
+  int64_t n, start;
+  int K1, deg;
+};
+
+template <typename S>
+std::vector<RawGroup<S>> raw_groups(const std::vector<at::Tensor>& means, const std::vector<at::Tensor>& quats,
+                                    const std::vector<at::Tensor>& scales, const std::vector<at::Tensor>& opac,
+                                    const std::vector<at::Tensor>& sh0, const std::vector<at::Tensor>& shN,
+                                    int sh_degree) {
+  std::vector<RawGroup<S>> gs(means.size());
+  int64_t start = 0;
+  for (size_t g = 0; g < means.size(); ++g) {
+    RawGroup<S>& r = gs[g];
+    r.means = means[g].data_ptr<S>(); r.quats = quats[g].data_ptr<S>(); r.scales = scales[g].data_ptr<S>();
+    r.opac = opac[g].data_ptr<S>(); r.sh0 = sh0[g].data_ptr<S>(); r.shN = shN[g].data_ptr<S>();
+    r.n = means[g].size(0);
+    r.start = start;
+    start += r.n;
+    r.K1 = int(shN[g].size(1));
+    int deg = 0;
+    while ((deg + 1) * (deg + 1) - 1 < r.K1) ++deg;
+    r.deg = std::min(deg, sh_degree);
+  }
+  return gs;
+}
+
+template <typename S>
+std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& groups, int64_t N, const double center[3],
+                                           const Camera& cam, double near, double far, double eps2d, bool cull,
+                                           at::ScalarType st, int nthreads) {
+  const int W = cam.W, H = cam.H;
+  const int tilesX = (W + TILE - 1) / TILE, tilesY = (H + TILE - 1) / TILE;
+  auto opts = at::TensorOptions().dtype(st);
+  // per-Gaussian scratch (only drawn rows are written; radii says which)
+  auto rec_all = at::empty({N, REC}, opts);
+  auto col_all = at::empty({N, 3}, opts);
+  auto rect_all = at::empty({N, 4}, at::kInt);
+  auto radii = at::empty({N}, at::kInt);
+  auto means2d = at::empty({N, 2}, opts);
+  S* recp = rec_all.data_ptr<S>();
+  S* colp = col_all.data_ptr<S>();
+  int32_t* rectp = rect_all.data_ptr<int32_t>();
+  int32_t* radp = radii.data_ptr<int32_t>();
+  S* m2p = means2d.data_ptr<S>();
+  int64_t first_bad = -1, rejected = 0;
+  for (const RawGroup<S>& G : groups) {
+    int64_t bad = std::numeric_limits<int64_t>::max();
+    int64_t rej = 0;
+#pragma omp parallel for schedule(static) num_threads(nthreads) reduction(min : bad) reduction(+ : rej)
+    for (int64_t i = 0; i < G.n; ++i) {
+      const int64_t k = G.start + i;
+      const S *mp = G.means + 3 * i, *qp = G.quats + 4 * i, *sp = G.scales + 3 * i;
+      radp[k] = 0;
+      m2p[2 * k] = m2p[2 * k + 1] = S(0);
+      bool finite = std::isfinite(double(G.opac[i]));
+      for (int j = 0; j < 3; ++j) finite = finite && std::isfinite(double(mp[j])) && std::isfinite(double(sp[j]));
+      for (int j = 0; j < 4; ++j) finite = finite && std::isfinite(double(qp[j]));
+      for (int j = 0; j < 3; ++j) finite = finite && std::isfinite(double(G.sh0[3 * i + j]));
+      if (!finite) { bad = std::min(bad, k); continue; }
+      const S sc[3] = {std::exp(sp[0]), std::exp(sp[1]), std::exp(sp[2])};
+      if (cull && off_screen(mp, double(std::max({sc[0], sc[1], sc[2]})), cam, near, far, eps2d)) {
+        ++rej;
+        continue;
+      }
+      Proj p;
+      project_one(mp, qp, sc, cam, near, far, eps2d, p);
+      if (p.in_depth) { m2p[2 * k] = S(p.m2d[0]); m2p[2 * k + 1] = S(p.m2d[1]); }
+      if (!p.ok) continue;
+      const S o = sigmoid_of(G.opac[i]);
+      const double od = double(o);
+      const double mid = 0.5 * (p.cov[0] + p.cov[2]);
+      const double lam = mid + std::sqrt(std::max(0.1, mid * mid - p.det));
+      double r = std::ceil(3.0 * std::sqrt(lam));
+      if (!std::isfinite(r)) continue;
+      r = std::min(r, 1e9);
+      const double mx = p.m2d[0], my = p.m2d[1];
+      const int x0 = int(std::min<double>(tilesX, std::max(0.0, std::floor((mx - r) / TILE))));
+      const int x1 = int(std::min<double>(tilesX, std::max(0.0, std::ceil((mx + r) / TILE))));
+      const int y0 = int(std::min<double>(tilesY, std::max(0.0, std::floor((my - r) / TILE))));
+      const int y1 = int(std::min<double>(tilesY, std::max(0.0, std::ceil((my + r) / TILE))));
+      if (x0 >= x1 || y0 >= y1 || !(od > 0.0)) continue;
+      S d[3], b[16];
+      view_dir(mp, center, d);
+      sh_basis(G.deg, d, b);
+      S* col = colp + 3 * k;
+      const int nb = (G.deg + 1) * (G.deg + 1);
+      bool col_ok = true;
+      for (int c = 0; c < 3; ++c) {
+        S v = b[0] * G.sh0[3 * i + c];
+        for (int j = 1; j < nb; ++j) v += b[j] * G.shN[(int64_t(G.K1) * i + (j - 1)) * 3 + c];
+        col[c] = std::max(v + S(0.5), S(0));
+        col_ok = col_ok && std::isfinite(double(col[c]));
+      }
+      if (!col_ok) { bad = std::min(bad, k); continue; }
+      radp[k] = int32_t(r);
+      int32_t* rc = rectp + 4 * k;
+      rc[0] = x0; rc[1] = y0; rc[2] = x1; rc[3] = y1;
+      const double tq = 2.0 * std::log(od / ALPHA_MIN);
+      const double ex = std::sqrt(std::max(0.0, tq) * p.cov[0]) * 1.02 + 0.5;
+      const double ey = std::sqrt(std::max(0.0, tq) * p.cov[2]) * 1.02 + 0.5;
+      S* g = recp + REC * k;
+      g[0] = S(mx); g[1] = S(my);
+      g[2] = S(p.conic[0]); g[3] = S(p.conic[1]); g[4] = S(p.conic[2]);
+      g[5] = o; g[6] = S(p.t[2]);
+      g[7] = S(std::min(ex, 1e9)); g[8] = S(std::min(ey, 1e9));
+      g[9] = S(-0.5 * tq - 0.01);
+    }
+    if (bad != std::numeric_limits<int64_t>::max() && first_bad < 0) first_bad = bad;
+    rejected += rej;
+  }
+  if (first_bad >= 0) {
+    auto e = at::zeros({0}, opts);
+    return {e, e, e, at::zeros({0}, at::kInt), e, e, e, at::zeros({0}, at::kLong), at::zeros({1}, at::kLong),
+            at::zeros({0}, at::kInt), at::full({1}, first_bad, at::kLong), at::zeros({1}, at::kLong)};
+  }
+  // compact the drawn Gaussians (in row order, so tile lists stay deterministic)
+  int64_t M = 0;
+  for (int64_t k = 0; k < N; ++k) M += radp[k] > 0;
+  auto gidx = at::empty({M}, at::kLong);
+  int64_t* gi = gidx.data_ptr<int64_t>();
+  {
+    int64_t m = 0;
+    for (int64_t k = 0; k < N; ++k)
+      if (radp[k] > 0) gi[m++] = k;
+  }
+  auto rec = at::empty({M, REC}, opts);
+  auto col = at::empty({M, 3}, opts);
+  std::vector<int32_t> rad_c(M), rect_c(4 * M);
+  std::vector<float> depth_f(M);
+  S* rc = rec.data_ptr<S>();
+  S* cc = col.data_ptr<S>();
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+  for (int64_t m = 0; m < M; ++m) {
+    const int64_t k = gi[m];
+    for (int j = 0; j < REC; ++j) rc[REC * m + j] = recp[REC * k + j];
+    for (int j = 0; j < 3; ++j) cc[3 * m + j] = colp[3 * k + j];
+    for (int j = 0; j < 4; ++j) rect_c[4 * m + j] = rectp[4 * k + j];
+    rad_c[m] = radp[k];
+    depth_f[m] = float(recp[REC * k + 6]);
+  }
+  auto [offsets, ids] = bin_gaussians(M, depth_f.data(), rad_c.data(), rect_c.data(), tilesX, tilesY, nthreads);
+  auto acc = at::empty({H, W, 3}, opts);
+  auto dn = at::empty({H, W}, opts);
+  auto aa = at::empty({H, W}, opts);
+  render_forward<S>(cam, 3, tilesX, tilesY, rc, cc, offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
+                    acc.data_ptr<S>(), dn.data_ptr<S>(), aa.data_ptr<S>(), nthreads);
+  return {acc, dn, aa, radii, means2d, rec, col, gidx, offsets, ids, at::full({1}, -1, at::kLong),
+          at::full({1}, N - rejected, at::kLong)};
+}
+
+template <typename S>
+std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& groups, int64_t N,
+                                            const double center[3], const Camera& cam, double near, double far,
+                                            double eps2d, const at::Tensor& rec, const at::Tensor& col,
+                                            const at::Tensor& gidx, const at::Tensor& offsets, const at::Tensor& ids,
+                                            const at::Tensor& acc, const at::Tensor& dn, const at::Tensor& aa,
+                                            const at::Tensor& g_acc, const at::Tensor& g_dn, const at::Tensor& g_a,
+                                            at::ScalarType st, int nthreads) {
+  const int64_t M = gidx.size(0);
+  const int tilesX = (cam.W + TILE - 1) / TILE, tilesY = (cam.H + TILE - 1) / TILE;
+  const int K = G_COL + 3;
+  auto gbuf = at::zeros({nthreads, M, K}, at::kDouble);
+  render_backward<S>(cam, 3, tilesX, tilesY, rec.data_ptr<S>(), col.data_ptr<S>(), offsets.data_ptr<int64_t>(),
+                     ids.data_ptr<int32_t>(), acc.data_ptr<S>(), dn.data_ptr<S>(), aa.data_ptr<S>(),
+                     g_acc.data_ptr<S>(), g_dn.data_ptr<S>(), g_a.data_ptr<S>(), M, gbuf.data_ptr<double>(), nthreads);
+  auto opts = at::TensorOptions().dtype(st);
+  // Outputs: per group the gradients of means, quats, log-scales, opacity logits, sh0 and shN
+  // (undefined, i.e. None, when the group uses no band above 0: its shN took no part, as in
+  // Gaussians.colors, and an optimiser must not see a zero gradient for it); then AbsGrad
+  // (N, 2). Every row is written exactly once (zeros where nothing was drawn), so the
+  // tensors start uninitialised: no separate memset of the N-row outputs.
+  std::vector<at::Tensor> out;
+  const size_t NG = groups.size();
+  std::vector<S*> gm(NG), gq(NG), gs(NG), go(NG), g0(NG), gn(NG);
+  for (size_t g = 0; g < NG; ++g) {
+    const int64_t n = groups[g].n;
+    out.push_back(at::empty({n, 3}, opts)); gm[g] = out.back().data_ptr<S>();
+    out.push_back(at::empty({n, 4}, opts)); gq[g] = out.back().data_ptr<S>();
+    out.push_back(at::empty({n, 3}, opts)); gs[g] = out.back().data_ptr<S>();
+    out.push_back(at::empty({n}, opts)); go[g] = out.back().data_ptr<S>();
+    out.push_back(at::empty({n, 1, 3}, opts)); g0[g] = out.back().data_ptr<S>();
+    if (groups[g].deg > 0) {
+      out.push_back(at::empty({n, groups[g].K1, 3}, opts)); gn[g] = out.back().data_ptr<S>();
+    } else {
+      out.push_back(at::Tensor()); gn[g] = nullptr;
+    }
+  }
+  auto absgrad = at::empty({N, 2}, opts);
+  S* pa = absgrad.data_ptr<S>();
+  const double* gb = gbuf.data_ptr<double>();
+  const int64_t* gi = gidx.data_ptr<int64_t>();
+  const S* cc = col.data_ptr<S>();
+  // record slot of each row (-1: not drawn)
+  std::vector<int64_t> slot(N, -1);
+  for (int64_t m = 0; m < M; ++m) slot[gi[m]] = m;
+  for (size_t g = 0; g < NG; ++g) {
+    const RawGroup<S>& G = groups[g];
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+    for (int64_t i = 0; i < G.n; ++i) {
+      const int64_t k = G.start + i;
+      const int64_t m = slot[k];
+      const int nbN = G.deg > 0 ? G.K1 : 0;  // shN rows written (all of them, bands above deg zero)
+      if (m < 0) {
+        for (int j = 0; j < 3; ++j) gm[g][3 * i + j] = gs[g][3 * i + j] = g0[g][3 * i + j] = S(0);
+        for (int j = 0; j < 4; ++j) gq[g][4 * i + j] = S(0);
+        go[g][i] = S(0);
+        for (int64_t j = 0; j < 3 * int64_t(nbN); ++j) gn[g][3 * int64_t(nbN) * i + j] = S(0);
+        pa[2 * k] = pa[2 * k + 1] = S(0);
+        continue;
+      }
+      double s[G_COL + 3];
+      for (int q = 0; q < K; ++q) s[q] = 0.0;
+      for (int t = 0; t < nthreads; ++t)
+        for (int q = 0; q < K; ++q) s[q] += gb[(int64_t(t) * M + m) * K + q];
+      const S *mp = G.means + 3 * i, *qp = G.quats + 4 * i, *sp = G.scales + 3 * i;
+      const S sc[3] = {std::exp(sp[0]), std::exp(sp[1]), std::exp(sp[2])};
+      Proj p;
+      project_one(mp, qp, sc, cam, near, far, eps2d, p);
+      const double gconic[3] = {s[G_CA], s[G_CB], s[G_CC]};
+      const double gm2[2] = {s[G_MX], s[G_MY]};
+      double gmean[3], gquat[4], gscale[3];
+      project_backward_one(p, cam, gconic, gm2, s[G_Z], gmean, gquat, gscale);
+      for (int j = 0; j < 3; ++j) {
+        gm[g][3 * i + j] = S(gmean[j]);
+        gs[g][3 * i + j] = S(gscale[j] * double(sc[j]));  // d exp(x) / dx = exp(x)
+      }
+      for (int j = 0; j < 4; ++j) gq[g][4 * i + j] = S(gquat[j]);
+      const double o = double(sigmoid_of(G.opac[i]));
+      go[g][i] = S(s[G_OP] * o * (1.0 - o));
+      S d[3], b[16];
+      view_dir(mp, center, d);  // the detached mean: no gradient through the direction
+      sh_basis(G.deg, d, b);     // bands above deg are 0: their coefficients get 0
+      for (int c = 0; c < 3; ++c) {
+        // colour clamped at 0: no gradient (clamp_min's)
+        const S gc = cc[3 * m + c] > S(0) ? S(s[G_COL + c]) : S(0);
+        g0[g][3 * i + c] = b[0] * gc;
+        for (int j = 1; j <= nbN; ++j) gn[g][(int64_t(G.K1) * i + (j - 1)) * 3 + c] = b[j] * gc;
+      }
+      pa[2 * k] = S(s[G_AX]);
+      pa[2 * k + 1] = S(s[G_AY]);
+    }
+  }
+  out.push_back(absgrad);
+  return out;
 }
 
 void check_cpu_contig(const at::Tensor& t, at::ScalarType st, const char* name) {
@@ -1036,8 +1338,89 @@ std::vector<at::Tensor> raster_backward(at::Tensor means, at::Tensor quats, at::
                                dn, aa, g_acc, g_dn, g_a, g_m2d, nt);
 }
 
+// Training path (see forward_train_impl): raw groups means (N_g,3), quats (N_g,4), log-scales
+// (N_g,3), opacity logits (N_g,), sh0 (N_g,1,3), shN (N_g,K_g,3), one dtype (float32 or float64),
+// contiguous. Returns [acc (H,W,3), depth numerator (H,W), alpha (H,W), radii (N,) int32,
+// means2d (N,2), records (M,REC), colours (M,3), drawn rows (M,) int64, tile offsets, tile ids,
+// first non-finite row (1,) or -1 (then nothing else is computed), Gaussians not culled (1,)].
+static void check_groups(const std::vector<at::Tensor>& means, const std::vector<at::Tensor>& quats,
+                         const std::vector<at::Tensor>& scales, const std::vector<at::Tensor>& opac,
+                         const std::vector<at::Tensor>& sh0, const std::vector<at::Tensor>& shN, at::ScalarType st) {
+  const size_t G = means.size();
+  TORCH_CHECK(quats.size() == G && scales.size() == G && opac.size() == G && sh0.size() == G && shN.size() == G,
+              "every parameter needs one tensor per group");
+  for (size_t g = 0; g < G; ++g) {
+    const int64_t n = means[g].size(0);
+    for (auto [t, name] : {std::pair{&means[g], "means"}, {&quats[g], "quats"}, {&scales[g], "scales"},
+                           {&opac[g], "opacities"}, {&sh0[g], "sh0"}, {&shN[g], "shN"}}) {
+      check_cpu_contig(*t, st, name);
+      TORCH_CHECK(t->size(0) == n, name, " of group ", g, " has ", t->size(0), " rows, expected ", n);
+    }
+    TORCH_CHECK(means[g].dim() == 2 && means[g].size(1) == 3 && quats[g].dim() == 2 && quats[g].size(1) == 4 &&
+                    scales[g].dim() == 2 && scales[g].size(1) == 3 && opac[g].dim() == 1,
+                "means (N,3), quats (N,4), scales (N,3), opacities (N,)");
+    TORCH_CHECK(shN[g].dim() == 3 && shN[g].size(2) == 3 && shN[g].size(1) <= 15 && sh0[g].numel() == 3 * n,
+                "sh0 (N,1,3) / shN (N,K,3) with K <= 15");
+  }
+}
+
+std::vector<at::Tensor> raster_forward_train(std::vector<at::Tensor> means, std::vector<at::Tensor> quats,
+                                             std::vector<at::Tensor> scales, std::vector<at::Tensor> opac,
+                                             std::vector<at::Tensor> sh0, std::vector<at::Tensor> shN,
+                                             int64_t sh_degree, at::Tensor center, at::Tensor viewmat, at::Tensor K,
+                                             int64_t width, int64_t height, double near, double far, double eps2d,
+                                             bool cull, int64_t nthreads) {
+  TORCH_CHECK(!means.empty(), "at least one group");
+  const auto st = means[0].scalar_type();
+  TORCH_CHECK(st == at::kFloat || st == at::kDouble, "float32 or float64 Gaussians");
+  check_groups(means, quats, scales, opac, sh0, shN, st);
+  auto c = center.detach().to(at::kCPU, at::kDouble).contiguous();
+  const double ctr[3] = {c.data_ptr<double>()[0], c.data_ptr<double>()[1], c.data_ptr<double>()[2]};
+  const Camera cam = make_camera(viewmat, K, int(width), int(height));
+  int64_t N = 0;
+  for (const auto& m : means) N += m.size(0);
+  const int nt = clamp_threads(nthreads);
+  if (st == at::kFloat)
+    return forward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
+                                     cam, near, far, eps2d, cull, st, nt);
+  return forward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
+                                    cam, near, far, eps2d, cull, st, nt);
+}
+
+// Returns per group [g_means, g_quats, g_log_scales, g_opacity_logits, g_sh0, g_shN] (the
+// groups' shapes), then absgrad2d (N,2).
+std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std::vector<at::Tensor> quats,
+                                              std::vector<at::Tensor> scales, std::vector<at::Tensor> opac,
+                                              std::vector<at::Tensor> sh0, std::vector<at::Tensor> shN,
+                                              int64_t sh_degree, at::Tensor center, at::Tensor viewmat, at::Tensor K,
+                                              int64_t width, int64_t height, double near, double far, double eps2d,
+                                              at::Tensor rec, at::Tensor col, at::Tensor gidx, at::Tensor offsets,
+                                              at::Tensor ids, at::Tensor acc, at::Tensor dn, at::Tensor aa,
+                                              at::Tensor g_acc, at::Tensor g_dn, at::Tensor g_a, int64_t nthreads) {
+  const auto st = means[0].scalar_type();
+  check_groups(means, quats, scales, opac, sh0, shN, st);
+  for (auto [t, n] : {std::pair{&rec, "rec"}, {&col, "colors"}, {&acc, "acc"}, {&dn, "dn"}, {&aa, "alpha"},
+                      {&g_acc, "g_acc"}, {&g_dn, "g_dn"}, {&g_a, "g_alpha"}})
+    check_cpu_contig(*t, st, n);
+  auto c = center.detach().to(at::kCPU, at::kDouble).contiguous();
+  const double ctr[3] = {c.data_ptr<double>()[0], c.data_ptr<double>()[1], c.data_ptr<double>()[2]};
+  const Camera cam = make_camera(viewmat, K, int(width), int(height));
+  int64_t N = 0;
+  for (const auto& m : means) N += m.size(0);
+  const int nt = clamp_threads(nthreads);
+  if (st == at::kFloat)
+    return backward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
+                                      cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
+                                      g_a, st, nt);
+  return backward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
+                                     cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
+                                     g_a, st, nt);
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &raster_forward, "Gaussian rasterization forward (CPU)");
   m.def("backward", &raster_backward, "Gaussian rasterization backward (CPU)");
   m.def("forward_gaussians", &raster_forward_gaussians, "inference forward from raw Gaussian groups (CPU)");
+  m.def("forward_train", &raster_forward_train, "training forward from raw Gaussian groups (CPU)");
+  m.def("backward_train", &raster_backward_train, "training backward to raw Gaussian groups (CPU)");
 }

@@ -1,0 +1,212 @@
+"""The fused training path (``CpuRasterizer.rasterize_gaussians_train``: raw Gaussians in
+parts, activation, SH colour, off-screen rejection, rasterization and the backward to every
+raw tensor in the kernel) against the obvious torch composition it replaces: activate in
+torch, ``Gaussians.cat`` + ``Gaussians.colors``, then :meth:`CpuRasterizer.rasterize`.
+
+float64 runs the double-precision kernel on both sides, so pixels, gradients, AbsGrad and
+radii must agree to rounding (1e-9 relative); float32 to float rounding (1e-4 relative for
+gradients, whose sums run in a different order). ``torch.autograd.gradcheck`` checks the
+fused backward against central differences on a tiny scene.
+"""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from omnire_rasterizer_cpu import available
+
+OK, REASON = available("cpu")
+if not OK:
+    pytest.skip(f"cpu rasterizer extension unavailable: {REASON}", allow_module_level=True)
+
+from omnire_rasterizer_cpu.rasterizer import CpuRasterizer
+from omnire_rasterizer_cpu.testing import random_scene
+
+from omnire.camera import Camera
+from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
+from omnire.rasterization import RasterInputError, RasterSettings, Splats
+
+W, H = 80, 56
+
+
+def raw_parts(seed: int, dtype, degrees=(3, 1, 0, 2), n=150, width=W, height=H, opacity=(0.02, 0.95),
+              scale_px=3.0, depth=(2.0, 8.0), scatter=True):
+    """Parts of raw Gaussians, one SH degree each: many in view, some scattered (behind or
+    beside the camera, rejected by the culling), then a part entirely behind the camera and
+    an empty one. Returns (parts, camera)."""
+    parts = []
+    for k, deg in enumerate(degrees):
+        s = random_scene(n, width, height, seed=seed + k, dtype=dtype, scale_px=scale_px, opacity=opacity,
+                         depth=depth)
+        g = torch.Generator().manual_seed(seed + 100 + k)
+        means = s["means"].clone()
+        if scatter:
+            means[: n // 5] += 30.0 * torch.randn(n // 5, 3, generator=g, dtype=dtype)
+        shN = 0.3 * torch.randn(n, (deg + 1) ** 2 - 1, 3, generator=g, dtype=dtype)
+        parts.append(Gaussians(means, s["quats"] * 2.5, torch.log(s["scales"]), torch.logit(s["opacities"]),
+                               0.5 * torch.randn(n, 1, 3, generator=g, dtype=dtype), shN))
+    behind = random_scene(7, width, height, seed=seed + 50, dtype=dtype)
+    parts.append(Gaussians(behind["means"] * torch.tensor([1.0, 1.0, -1.0], dtype=dtype), behind["quats"],
+                           torch.log(behind["scales"]), torch.logit(behind["opacities"]),
+                           torch.zeros(7, 1, 3, dtype=dtype), torch.zeros(7, 3, 3, dtype=dtype)))
+    parts.append(Gaussians(*(torch.zeros((0,) + t.shape[1:], dtype=dtype) for t in
+                             (parts[0].means, parts[0].quats, parts[0].scales, parts[0].opacities, parts[0].sh0,
+                              parts[1].shN))))
+    return parts, Camera.from_world_to_cam(s["viewmat"], s["K"], width, height)
+
+
+def leaves(parts):
+    return [Gaussians(*(getattr(p, k).detach().clone().requires_grad_(True) for k in GAUSSIAN_KEYS)) for p in parts]
+
+
+def reference(rast, parts, camera, sh_degree, settings):
+    """The slow obvious composition: torch activations and SH, concatenation, ``rasterize``."""
+    g = Gaussians.cat(parts)
+    splats = Splats(g.means, g.quats, g.activated_scales, g.activated_opacities, g.colors(camera.center, sh_degree))
+    return rast.rasterize(splats, camera, settings)
+
+
+def projection_loss(out, seed=5):
+    """A random projection of every differentiable output (rgb, depth, alpha)."""
+    gen = torch.Generator().manual_seed(seed)
+    dt = out.rgb.dtype
+    h, w = out.rgb.shape[:2]
+    return ((out.rgb * torch.randn(h, w, 3, generator=gen, dtype=dt)).sum()
+            + (out.depth * 0.1 * torch.randn(h, w, 1, generator=gen, dtype=dt)).sum()
+            + (out.alpha * torch.randn(h, w, 1, generator=gen, dtype=dt)).sum())
+
+
+def compare(dtype, sh_degree, seed, rtol_grad):
+    parts, camera = raw_parts(seed, dtype)
+    bg = torch.tensor([0.2, 0.4, 0.6], dtype=dtype)
+    settings = RasterSettings(background=bg)
+    rast = CpuRasterizer(num_threads=2)
+    fused_in, ref_in = leaves(parts), leaves(parts)
+    fused, kept = rast.rasterize_gaussians_train(fused_in, camera, sh_degree, settings)
+    ref = reference(rast, ref_in, camera, sh_degree, settings)
+    N = sum(len(p) for p in parts)
+    assert kept < N - 7  # the culling rejected the part behind the camera and scattered ones
+    assert float(ref.alpha.detach().max()) > 0.5 and int((ref.radii > 0).sum()) > 100  # a real picture
+    projection_loss(fused).backward()
+    projection_loss(ref).backward()
+    tol_px = 1e-12 if dtype == torch.float64 else 2e-6
+    for key in ("rgb", "alpha", "depth"):
+        a, b = getattr(fused, key).detach(), getattr(ref, key).detach()
+        assert a.shape == b.shape, key
+        scale = float(b.abs().max()) if key == "depth" else 1.0
+        assert float((a - b).abs().max()) <= tol_px * scale, key
+    return fused, ref, fused_in, ref_in
+
+
+@pytest.mark.parametrize("sh_degree", [0, 1, 2, 3])
+def test_fused_matches_reference_float64(sh_degree):
+    """Pixels, depth, alpha, radii, AbsGrad and the gradient of every raw tensor of every
+    part agree with the torch composition to 1e-9 (relative to the largest entry)."""
+    fused, ref, fused_in, ref_in = compare(torch.float64, sh_degree, seed=sh_degree, rtol_grad=1e-9)
+    assert torch.equal(fused.radii, ref.radii)
+    torch.testing.assert_close(fused.absgrad2d, ref.absgrad2d, rtol=0, atol=1e-9 * float(ref.absgrad2d.abs().max()))
+    assert float(fused.absgrad2d.abs().sum()) > 0
+    for pi, (a, b) in enumerate(zip(fused_in, ref_in)):
+        for k in GAUSSIAN_KEYS:
+            ga = getattr(a, k).grad
+            gb = getattr(b, k).grad
+            if ga is None or gb is None:
+                # no gradient at all (shN of parts drawn with band 0 only), as Gaussians.colors
+                # leaves it: the optimiser must not see zeros
+                assert k == "shN" and (sh_degree == 0 or getattr(a, k).shape[1] == 0), (pi, k)
+                assert ga is None and (gb is None or gb.numel() == 0), (pi, k)
+                continue
+            assert ga.shape == getattr(a, k).shape, (pi, k)
+            if ga.numel() == 0:
+                continue
+            scale = max(1.0, float(gb.abs().max()))
+            assert float((ga - gb).abs().max()) <= 1e-9 * scale, (pi, k, float((ga - gb).abs().max()))
+    # bands above the requested degree get no gradient; the part behind the camera none at all
+    for p in fused_in:
+        if len(p) and sh_degree > 0 and p.shN.shape[1] > (sh_degree + 1) ** 2 - 1:
+            assert float(p.shN.grad[:, (sh_degree + 1) ** 2 - 1:].abs().max()) == 0.0
+    assert all(float(getattr(fused_in[-2], k).grad.abs().max()) == 0.0 for k in GAUSSIAN_KEYS
+               if getattr(fused_in[-2], k).grad is not None)
+    assert int((fused.radii[-7:] > 0).sum()) == 0
+
+
+@pytest.mark.parametrize("sh_degree", [0, 3])
+def test_fused_matches_reference_float32(sh_degree):
+    """The float32 (AVX2) kernel: pixels to 2e-6, gradients and AbsGrad to 1e-4 of the
+    largest entry (sums in another order), the same Gaussians drawn."""
+    fused, ref, fused_in, ref_in = compare(torch.float32, sh_degree, seed=10 + sh_degree, rtol_grad=1e-4)
+    assert torch.equal(fused.radii > 0, ref.radii > 0)
+    assert int((fused.radii - ref.radii).abs().max()) <= 1
+    torch.testing.assert_close(fused.absgrad2d, ref.absgrad2d, rtol=0, atol=1e-4 * float(ref.absgrad2d.abs().max()))
+    for pi, (a, b) in enumerate(zip(fused_in, ref_in)):
+        for k in GAUSSIAN_KEYS:
+            ga, gb = getattr(a, k).grad, getattr(b, k).grad
+            if ga is None or gb is None:  # see the float64 test
+                assert k == "shN" and ga is None and (gb is None or gb.numel() == 0), (pi, k)
+            elif ga.numel():
+                assert float((ga - gb).abs().max()) <= 1e-4 * max(1.0, float(gb.abs().max())), (pi, k)
+
+
+def test_culling_changes_nothing_and_absgrad_accumulates():
+    """cull=False renders the same pixels (the rejected Gaussians could not be drawn) and
+    gives the same gradients; AbsGrad adds up over backward passes like ``rasterize``'s."""
+    parts, camera = raw_parts(21, torch.float64, degrees=(2, 0))
+    rast = CpuRasterizer(num_threads=1)
+    a_in, b_in = leaves(parts), leaves(parts)
+    a, kept_a = rast.rasterize_gaussians_train(a_in, camera, 2, RasterSettings(), cull=True)
+    b, kept_b = rast.rasterize_gaussians_train(b_in, camera, 2, RasterSettings(), cull=False)
+    assert kept_a < kept_b == sum(len(p) for p in parts)
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.radii, b.radii)
+    projection_loss(a).backward()
+    projection_loss(b).backward()
+    for pa, pb in zip(a_in, b_in):
+        for k in GAUSSIAN_KEYS:
+            ga, gb = getattr(pa, k).grad, getattr(pb, k).grad
+            assert (ga is None and gb is None) or torch.equal(ga, gb), k
+    first = a.absgrad2d.clone()
+    a2, _ = rast.rasterize_gaussians_train(a_in, camera, 2, RasterSettings(), cull=True)
+    a2.absgrad2d.copy_(first)  # the trainer accumulates into one buffer per render; here: twice
+    projection_loss(a2).backward()
+    torch.testing.assert_close(a2.absgrad2d, 2 * first)
+
+
+def test_fused_gradcheck_float64():
+    """Central differences on a tiny well-conditioned scene (opacities 0.2-0.7: no clamp,
+    no skip/stop decision flips under 1e-6). Means use SH degree 0: the colour's view
+    direction is detached by design (as ``Gaussians.colors``), which finite differences
+    would see; the other tensors are checked with all bands."""
+    parts, camera = raw_parts(3, torch.float64, degrees=(3, 1), n=5, width=24, height=20, opacity=(0.2, 0.7),
+                              depth=(2.0, 4.0), scatter=False)
+    parts = parts[:2]
+    rast = CpuRasterizer(num_threads=1)
+    bg = torch.tensor([0.3, 0.6, 0.9], dtype=torch.float64)
+    out0, _ = rast.rasterize_gaussians_train(parts, camera, 3, RasterSettings(background=bg))
+    assert int((out0.radii > 0).sum()) >= 7 and float(out0.alpha.detach().max()) > 0.3
+
+    for key in GAUSSIAN_KEYS:
+        degree = 0 if key == "means" else 3
+
+        def f(x0, x1, key=key, degree=degree):
+            ps = [Gaussians(**{k: (x if k == key else getattr(p, k)) for k in GAUSSIAN_KEYS})
+                  for p, x in zip(parts, (x0, x1))]
+            out, _ = rast.rasterize_gaussians_train(ps, camera, degree, RasterSettings(background=bg))
+            return projection_loss(out, seed=7)
+
+        xs = tuple(getattr(p, key).detach().clone().requires_grad_(True) for p in parts)
+        assert torch.autograd.gradcheck(f, xs, eps=1e-6, atol=1e-6, rtol=1e-4), key
+
+
+def test_fused_refuses_non_finite_and_bad_shapes():
+    parts, camera = raw_parts(5, torch.float32, degrees=(1, 0))
+    rast = CpuRasterizer()
+    bad = leaves(parts)
+    with torch.no_grad():
+        bad[1].opacities[3] = math.nan
+    with pytest.raises(RasterInputError, match=f"row {len(parts[0]) + 3}"):
+        rast.rasterize_gaussians_train(bad, camera, 1)
+    with pytest.raises(RasterInputError, match="no parts"):
+        rast.rasterize_gaussians_train([], camera, 1)
+    wrong = Gaussians(parts[0].means[:, :2].contiguous(), *(getattr(parts[0], k) for k in GAUSSIAN_KEYS[1:]))
+    with pytest.raises(RasterInputError, match="expected \\(N, 3\\)"):
+        rast.rasterize_gaussians_train([wrong], camera, 1)

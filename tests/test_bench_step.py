@@ -1,0 +1,36 @@
+"""``omnire bench step``: per-stage timings of both render paths, JSON + table."""
+import json
+
+import pytest
+from scene_helpers import DEMO_SCENE
+
+from omnire.errors import ConfigError
+from omnire.plugins import load_plugins
+
+ARGS = ["--dataparser", "pandaset", "--data", str(DEMO_SCENE), "--method", "streetgs",
+        "--dataparser-args=--end-frame 6 --scale 0.25",
+        ("--method-args=--method.rasterizer cpu --method.nodes.background.max-lidar-points 2000 "
+         "--method.nodes.background.num-far-points 200")]
+
+
+@pytest.mark.skipif(not DEMO_SCENE.is_dir(), reason="demo scene not in this checkout")
+def test_bench_step_times_both_paths(tmp_path, capsys):
+    plugins = load_plugins()
+    from omnire_rasterizer_cpu import available
+
+    if not available("cpu")[0]:
+        pytest.skip("cpu rasterizer unavailable")
+    main = plugins.commands.get("bench step").main
+    out = tmp_path / "step.json"
+    assert main([*ARGS, "--gaussians", "3000", "--at-step", "3000", "--warmup", "1", "--steps", "2",
+                 "--output", str(out)], plugins) == 0
+    result = json.loads(out.read_text())
+    assert result["gaussians_by_node"]["background"] == 3000 and result["sh_degree"] == 3
+    assert set(result["paths"]) == {"fused", "unfused"}
+    for stages in result["paths"].values():
+        assert set(stages) == {"nodes", "render", "loss", "backward", "densify_stats", "optimizer", "total",
+                               "total_cpu"}
+        assert stages["total"]["median_ms"] > 0 and stages["render"]["median_ms"] > 0
+    assert "backward" in capsys.readouterr().out
+    with pytest.raises(ConfigError, match="--paths"):
+        main([*ARGS, "--paths", "fast", "--steps", "1", "--output", str(out)], plugins)
