@@ -9,9 +9,10 @@ Gaussians in the scene, and the process's peak resident memory.
 
 ``--save-images DIR`` keeps every render (float32 .npy) and ``--compare-to DIR`` reports the
 largest absolute pixel difference against such a set (same runs, views and sizes): a
-speed-up must not change the pixels. ``--training-path`` renders with autograd on, through
-the path training uses (and every render used before the no-grad inference path of
-``SceneModel.render_parts``): the reference the inference path is compared with.
+speed-up must not change the pixels. ``--training-path`` renders with autograd on through the
+plain torch composition (culling, concatenation, torch SH and activations, then the
+rasterizer: how every render was drawn before the no-grad inference path of
+``SceneModel.render_parts`` existed): the reference the inference path is compared with.
 """
 from __future__ import annotations
 
@@ -53,7 +54,7 @@ class BenchRenderArgs:
     compare_to: Optional[Path] = None
     """Report the largest absolute pixel difference against renders saved by --save-images."""
     training_path: bool = False
-    """Render with autograd on (the training path) instead of the inference path: a reference for --compare-to."""
+    """Render with autograd on through the plain torch composition instead of the inference path: a reference for --compare-to."""
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -93,6 +94,8 @@ def measure(run: Path, sizes: list[tuple[int, int]], views: int, warmup: int, th
            "gaussians": recon.num_gaussians(), "step": recon.step, "views": len(chosen), "sizes": {}}
     key = run.resolve().name
     out["path"] = "training" if training_path else "inference"
+    if training_path:  # the plain torch composition (assemble + composite), not the fused native one
+        recon.model.use_fused_training = False
     with torch.set_grad_enabled(training_path):
         for w, h in sizes:
             cams = [(v, recon.camera(v).resized(w, h)) for v in chosen]

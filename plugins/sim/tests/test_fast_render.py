@@ -17,6 +17,7 @@ def test_fast_path_equals_training_path(tmp_path, plugins):
         shN = node.gaussian_params["shN"]
         with torch.no_grad():
             shN.copy_(0.3 * torch.randn(shN.shape, generator=g))
+    recon.model.use_fused_training = False  # the reference: the plain torch composition
     assert recon.model.fast_inference() is False  # autograd is on here
     for view in recon.scene.views(np.array([0, 3, 7])):
         cam, t = recon.camera(view).resized(120, 80), recon.time(view.frame)
