@@ -106,7 +106,7 @@ class BatchRun:
 
     def run(self, on_result: Callable[[dict], None], on_progress: Callable[[dict, list[str]], None],
             on_stop: Callable[[int], None]) -> bool:
-        """Returns False when the batch was stopped by a signal."""
+        """Returns False when a signal stopped the batch (it came while jobs were running)."""
         board = ProgressBoard.remote()
         log_dir = self.jobs[0].output / "logs"
         ready: dict[str, ray.ObjectRef] = {}
@@ -122,7 +122,7 @@ class BatchRun:
             ref = _job_task.options(**opts).remote(job, ready.get(job.scene.name), self.redo_changed, board)
             pending[ref] = job
         old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-        handled = 0
+        handled = 0  # signals acted on; one that arrives after the last job ended stops nothing
         try:
             while pending:
                 done, _ = ray.wait(list(pending), num_returns=len(pending), timeout=1.0)
@@ -144,7 +144,7 @@ class BatchRun:
         finally:
             for s, h in old.items():
                 signal.signal(s, h)
-        return not self.signals
+        return handled == 0
 
     @staticmethod
     def _get(ref, job: Job, stopping: bool) -> dict:
