@@ -127,7 +127,9 @@ def test_killed_batch_resumes_from_the_newest_checkpoint(tmp_path):
     proc.send_signal(signal.SIGTERM)
     text = proc.communicate(timeout=120)[0]
     assert proc.returncode == 130, text
-    assert "stopping: each running job writes a checkpoint" in text and "INTERRUPTED" in text
+    job_log = out / "logs" / "tiny" / "3dgs-seed0.log"
+    assert "stopping: each running job writes a checkpoint" in text and "INTERRUPTED" in text, (
+        text + "\n--- job log tail ---\n" + (job_log.read_text()[-3000:] if job_log.is_file() else "(none)"))
     record = json.loads((out / "jobs" / "tiny" / "3dgs-seed0.json").read_text())
     assert record["status"] == "interrupted"
     first = checkpoint_steps(run)
