@@ -22,6 +22,12 @@ from omnire_batch.spec import Job, Scene
 from omnire_batch.runner import base_result, execute_job, prepare_scene
 
 GIB = 1024 ** 3
+STOP_FILE = ".stop-requested"
+"""Created in the batch output folder when the driver is asked to stop: each job task sees it
+within a second and has its trainer checkpoint and exit. ray.cancel does the same through a
+KeyboardInterrupt in the task, which a task blocked in a system call can miss (observed: a
+job ran to its end); the file is the path that does not depend on it (the output folder is
+on storage every worker sees, docs/batch.md)."""
 
 
 @ray.remote(num_cpus=0)
@@ -48,11 +54,13 @@ def _prepare_task(scene: Scene, log_dir) -> Optional[str]:
 
 @ray.remote
 def _job_task(job: Job, scene_error: Optional[str], redo_changed: bool, board) -> dict:
+    stop_file = job.output / STOP_FILE
+
     def report(key: str, info: dict) -> bool:
         # Fire and forget: a task blocked in ray.get lends its CPUs to other tasks, which
-        # would start more trainers than there are cores. Stopping goes through ray.cancel.
+        # would start more trainers than there are cores. True = stop (see STOP_FILE).
         board.report.remote(key, info)
-        return False
+        return stop_file.exists()
 
     return execute_job(job, report, scene_error, redo_changed)
 
@@ -107,6 +115,8 @@ class BatchRun:
     def run(self, on_result: Callable[[dict], None], on_progress: Callable[[dict, list[str]], None],
             on_stop: Callable[[int], None]) -> bool:
         """Returns False when a signal stopped the batch (it came while jobs were running)."""
+        stop_file = self.jobs[0].output / STOP_FILE
+        stop_file.unlink(missing_ok=True)  # left by an earlier batch that was stopped
         board = ProgressBoard.remote()
         log_dir = self.jobs[0].output / "logs"
         ready: dict[str, ray.ObjectRef] = {}
@@ -132,6 +142,7 @@ class BatchRun:
                 if self.signals > handled:
                     handled = self.signals
                     on_stop(min(handled, 2))
+                    stop_file.touch()
                     # 1st signal: KeyboardInterrupt in running tasks (their trainers checkpoint and
                     # exit; queued tasks are dropped); 2nd: kill the workers (trainers get SIGTERM).
                     for ref in pending:
@@ -144,6 +155,7 @@ class BatchRun:
         finally:
             for s, h in old.items():
                 signal.signal(s, h)
+            stop_file.unlink(missing_ok=True)
         return handled == 0
 
     @staticmethod

@@ -189,3 +189,25 @@ def test_killed_batch_resumes_from_the_newest_checkpoint(tmp_path):
     assert f"(resuming from step {resumed})" in headers[3]
     steps = [r["step"] for r in read_metrics(run) if "its" in r]
     assert steps == sorted(set(steps)) and steps[-1] == 1200 and steps[0] <= 50
+
+
+def test_stop_file_interrupts_running_jobs(tmp_path):
+    """The path that does not depend on Ray's KeyboardInterrupt: a job task that sees
+    <output>/.stop-requested has its trainer checkpoint and exit (interrupted, resumable)."""
+    from omnire_batch.cluster import STOP_FILE
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / STOP_FILE).touch()  # left over by an earlier stopped batch: removed at the start
+    args = ["--scenes", "tiny=synth:empty --frames 8 --width 320 --height 200", "--methods", "3dgs", "--steps", "1200",
+            "--checkpoints", "1", "--checkpoint-every", "50", f"--method-args={SMALL}", "--output", str(out)]
+    run = out / "runs" / "tiny" / "3dgs-seed0"
+    proc = subprocess.Popen([sys.executable, "-m", "omnire.cli", "batch", "--local-cpus", "2", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    _wait_for_checkpoints(run, proc, 0)
+    (out / STOP_FILE).touch()
+    text = proc.communicate(timeout=120)[0]
+    assert proc.returncode == 1 and "tiny/3dgs-seed0: INTERRUPTED" in text, text
+    assert json.loads((out / "jobs" / "tiny" / "3dgs-seed0.json").read_text())["status"] == "interrupted"
+    assert 0 < checkpoint_steps(run)[-1] < 1200
+    assert not (out / STOP_FILE).exists()
