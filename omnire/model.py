@@ -231,41 +231,25 @@ class SceneModel(nn.Module):
         """Render node outputs (name, output or None), e.g. actors in edited states: the
         inference path when :meth:`fast_inference`, the fused training path when
         :meth:`fused_training`, else :meth:`assemble` + :meth:`composite`."""
-        if not self.fast_inference():
-            if self.fused_training():
-                return self._render_fused_training(parts, camera, t, sh_degree, hidden)
-            g, slices, outputs = self.assemble(parts, camera)
-            return self.composite(g, slices, outputs, camera, t, sh_degree, hidden)
-        gs, slices, outputs, start = [], [], {}, 0
-        for name, out in parts:
-            if out is None or len(out.gaussians) == 0:
-                continue
-            outputs[name] = out
-            gs.append(out.gaussians)
-            slices.append(NodeSlice(name, start, start + len(out.gaussians), out.rows))
-            start += len(out.gaussians)
-        if not gs:
-            return self.composite(None, slices, outputs, camera, t, sh_degree, hidden)
-        env = {n: m for n, m in self.environment_nodes().items() if n not in hidden}
-        background = None if env else self._background
-        # colours use bands up to min(sh_degree, the largest degree present), as Gaussians.cat + colors do
-        degree = min(sh_degree, max(g.sh_degree for g in gs))
-        # the rasterizer culls to the view itself (cull_to_view): num_gaussians counts those kept
-        out, kept = self.rasterizer.rasterize_gaussians(gs, camera, degree, RasterSettings(background=background),
-                                                        cull=self.method.cull_to_view)
-        rgb = out.rgb
-        for node in env.values():
-            rgb = rgb + (1.0 - out.alpha) * node.render_environment(camera, t)
-        return RenderResult(rgb, out.depth, out.alpha, out.absgrad2d, out.radii, slices, kept, outputs)
+        if self.fast_inference():
+            return self._render_native(parts, camera, t, sh_degree, hidden, train=False)
+        if self.fused_training():
+            return self._render_native(parts, camera, t, sh_degree, hidden, train=True)
+        g, slices, outputs = self.assemble(parts, camera)
+        return self.composite(g, slices, outputs, camera, t, sh_degree, hidden)
 
-    def _render_fused_training(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Camera, t: SceneTime,
-                               sh_degree: int, hidden: frozenset[str]) -> RenderResult:
-        """:meth:`render_parts` with autograd through ``rasterize_gaussians_train``."""
+    def _render_native(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Camera, t: SceneTime,
+                       sh_degree: int, hidden: frozenset[str], train: bool) -> RenderResult:
+        """:meth:`render_parts` through the rasterizer's own raw-Gaussian path: node outputs
+        go in as parts, uncopied (``rasterize_gaussians_train`` with autograd when ``train``,
+        else ``rasterize_gaussians``); the rasterizer culls to the view itself
+        (``cull_to_view``) and ``num_gaussians`` counts the rows it kept."""
         gs, slices, outputs, start = [], [], {}, 0
         for name, out in parts:
             if out is None:
                 continue
-            outputs[name] = out
+            if train or len(out.gaussians):  # training keeps empty outputs for the regularisers
+                outputs[name] = out
             if len(out.gaussians) == 0:
                 continue
             gs.append(out.gaussians)
@@ -274,9 +258,14 @@ class SceneModel(nn.Module):
         if not gs:
             return self.composite(None, slices, outputs, camera, t, sh_degree, hidden)
         env = {n: m for n, m in self.environment_nodes().items() if n not in hidden}
-        background = None if env else self._background
-        out, kept = self.rasterizer.rasterize_gaussians_train(gs, camera, sh_degree, RasterSettings(background=background),
-                                                              cull=self.method.cull_to_view)
+        settings = RasterSettings(background=None if env else self._background)
+        if train:
+            out, kept = self.rasterizer.rasterize_gaussians_train(gs, camera, sh_degree, settings,
+                                                                  cull=self.method.cull_to_view)
+        else:
+            # colours use bands up to min(sh_degree, the largest degree present), as Gaussians.cat + colors do
+            degree = min(sh_degree, max(g.sh_degree for g in gs))
+            out, kept = self.rasterizer.rasterize_gaussians(gs, camera, degree, settings, cull=self.method.cull_to_view)
         rgb = out.rgb
         for node in env.values():
             rgb = rgb + (1.0 - out.alpha) * node.render_environment(camera, t)
