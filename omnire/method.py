@@ -34,6 +34,18 @@ class MethodConfig:
     """AbsGrad densification."""
     sh_degree_interval: int = 1000
     """Steps between switching on SH bands."""
+    num_downscales: int = 0
+    """Coarse-to-fine: the first steps train at 1 / 2**num_downscales of the image resolution
+    (0 = full resolution throughout; see omnire/resolution.py)."""
+    resolution_schedule: int = 250
+    """Steps per resolution level: the downscale factor halves every this many steps."""
+    exposure: bool = True
+    """Learn an affine colour transform per camera and training frame (omnire/exposure.py);
+    --method.no-exposure renders the Gaussians' colours as they are."""
+    exposure_lr: float = 1e-3
+    """Adam lr of the exposure transforms."""
+    exposure_weight: float = 1e-2
+    """Weight of the L2 penalty on the transforms' deviation from identity."""
     background_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Colour under the Gaussians when the method has no environment (sky) node."""
     cull_to_view: bool = True

@@ -16,6 +16,7 @@ from torch import nn
 from omnire.camera import Camera, in_frustum
 from omnire.data.scene import SceneData, SceneTime
 from omnire.errors import UserError
+from omnire.exposure import ExposureCompensation
 from omnire.gaussians import Gaussians
 from omnire.nodes.base import EnvironmentNode, Node, NodeContext, NodeOutput
 from omnire.rasterization import Rasterizer, RasterSettings, Splats
@@ -152,6 +153,27 @@ class SceneModel(nn.Module):
             nodes[name] = method.nodes[name].setup(context=ctx, tracks=assigned[name])
         self.nodes = nn.ModuleDict(nodes)
         self._background = torch.tensor(method.background_color, dtype=torch.float32, device=device)
+        self.exposure: Optional[ExposureCompensation] = None
+        if getattr(method, "exposure", False):
+            self.exposure = ExposureCompensation([c.name for c in scene.cameras], scene.num_frames,
+                                                 scene.train_frames, method.exposure_lr, device)
+
+    def optimizable(self) -> dict[str, Any]:
+        """What the optimisers step, by name: the nodes, plus ``exposure`` when learned."""
+        out: dict[str, Any] = dict(self.nodes)
+        if self.exposure is not None:
+            out["exposure"] = self.exposure
+        return out
+
+    def finish_image(self, rgb: torch.Tensor, alpha: torch.Tensor, env: dict[str, EnvironmentNode],
+                     camera: Camera, t: SceneTime) -> torch.Tensor:
+        """Composite the environment nodes ``env`` under the Gaussians' (H, W, 3) ``rgb``
+        (coverage ``alpha`` (H, W, 1)), then the recorded camera's exposure."""
+        for node in env.values():
+            rgb = rgb + (1.0 - alpha) * node.render_environment(camera, t)
+        if self.exposure is not None:
+            rgb = self.exposure.apply(rgb, camera.name, t)
+        return rgb
 
     def gaussian_nodes(self) -> dict[str, Node]:
         return {n: m for n, m in self.nodes.items() if not isinstance(m, EnvironmentNode)}
@@ -266,9 +288,7 @@ class SceneModel(nn.Module):
             # colours use bands up to min(sh_degree, the largest degree present), as Gaussians.cat + colors do
             degree = min(sh_degree, max(g.sh_degree for g in gs))
             out, kept = self.rasterizer.rasterize_gaussians(gs, camera, degree, settings, cull=self.method.cull_to_view)
-        rgb = out.rgb
-        for node in env.values():
-            rgb = rgb + (1.0 - out.alpha) * node.render_environment(camera, t)
+        rgb = self.finish_image(out.rgb, out.alpha, env, camera, t)
         return RenderResult(rgb, out.depth, out.alpha, out.absgrad2d, out.radii, slices, kept, outputs)
 
     def composite(self, g: Optional[Gaussians], slices: list[NodeSlice], outputs: dict[str, NodeOutput],
@@ -293,6 +313,5 @@ class SceneModel(nn.Module):
             absgrad = torch.zeros(0, 2, device=self.device)
             radii = torch.zeros(0, dtype=torch.int32, device=self.device)
             n = 0
-        for node in env.values():
-            rgb = rgb + (1.0 - alpha) * node.render_environment(camera, t)
+        rgb = self.finish_image(rgb, alpha, env, camera, t)
         return RenderResult(rgb, depth, alpha, absgrad, radii, slices, n, outputs)

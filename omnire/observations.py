@@ -15,6 +15,7 @@ from omnire.data.images import ImageCache
 from omnire.data.scene import SceneData, View
 from omnire.lidar import LidarDepthTargets
 from omnire.masks import DynamicMasks, SkyMasks
+from omnire.resolution import downscale_image, downscale_pixel_samples
 
 
 class Observations:
@@ -28,30 +29,48 @@ class Observations:
         self._dynamic = DynamicMasks(scene, self.images, device)
         self._sky = SkyMasks(scene, self.images, device)
         self._scene_valid: Optional[dict[int, Optional[torch.Tensor]]] = None
+        self._downscaled: dict[tuple, object] = {}  # (what, view or camera, factor) -> value
 
-    def image(self, view: View) -> torch.Tensor:
+    # Every accessor takes ``factor``: the same data for the view rendered at 1 / factor of
+    # its resolution (omnire.resolution: block means of images and masks, LiDAR returns
+    # moved to their block), cached beside the full-resolution data.
+    def _at(self, key: tuple, factor: int, full, downscale):
+        if factor == 1 or full is None:
+            return full
+        key = key + (factor,)
+        if key not in self._downscaled:
+            self._downscaled[key] = downscale(full)
+        return self._downscaled[key]
+
+    def image(self, view: View, factor: int = 1) -> torch.Tensor:
         """(H, W, 3) float image in [0, 1]."""
-        return self.images.camera_image(self.scene.cameras[view.camera], view.frame).to(self.device)
+        full = self.images.camera_image(self.scene.cameras[view.camera], view.frame).to(self.device)
+        return self._at(("image", view), factor, full, lambda t: downscale_image(t, factor))
 
-    def lidar(self, view: View) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
+    def lidar(self, view: View, factor: int = 1) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
         """(flat pixel indices (P,), camera-z depths (P,)) of the frame's LiDAR in the view,
         or None without LiDAR at that frame."""
-        return self._lidar.get(view)
+        cam = self.scene.cameras[view.camera]
+        return self._at(("lidar", view), factor, self._lidar.get(view),
+                        lambda s: downscale_pixel_samples(s[0], s[1], cam.width, cam.height, factor))
 
-    def dynamic_mask(self, view: View, kind: str) -> torch.Tensor:
-        """(H, W, 1) {0, 1} mask of ``kind`` in {"human", "vehicle", "all"}."""
-        return self._dynamic.get(view, kind)
+    def dynamic_mask(self, view: View, kind: str, factor: int = 1) -> torch.Tensor:
+        """(H, W, 1) {0, 1} mask of ``kind`` in {"human", "vehicle", "all"} (block fractions
+        when downscaled)."""
+        return self._at(("dynamic", kind, view), factor, self._dynamic.get(view, kind),
+                        lambda t: downscale_image(t, factor))
 
-    def sky_mask(self, view: View) -> Optional[torch.Tensor]:
+    def sky_mask(self, view: View, factor: int = 1) -> Optional[torch.Tensor]:
         """(H, W, 1) {0, 1} sky mask, or None when neither the dataset nor LiDAR gives one."""
-        return self._sky.get(view)
+        return self._at(("sky", view), factor, self._sky.get(view), lambda t: downscale_image(t, factor))
 
-    def scene_pixels(self, view: View) -> Optional[torch.Tensor]:
+    def scene_pixels(self, view: View, factor: int = 1) -> Optional[torch.Tensor]:
         """(H, W, 1) {0, 1}: 0 where the recording vehicle itself is seen (its ego mask), 1
         elsewhere; None when the camera has no ego mask (every pixel is scene)."""
         if self._scene_valid is None:
             self._scene_valid = self._load_ego_masks()
-        return self._scene_valid[view.camera]
+        return self._at(("ego", view.camera), factor, self._scene_valid[view.camera],
+                        lambda t: downscale_image(t, factor))
 
     def _load_ego_masks(self) -> dict[int, Optional[torch.Tensor]]:
         out: dict[int, Optional[torch.Tensor]] = {}

@@ -102,6 +102,8 @@ class Reconstruction:
         ``assign``: adopt the state's tensors instead of copying them (e.g. memory-mapped ones)."""
         for name, node in self.model.nodes.items():
             node.prepare_load(state["model"], prefix=f"nodes.{name}.")
+        if self.model.exposure is not None and "exposure.delta" not in state["model"]:
+            self.model.exposure = None  # trained before exposure was learned: render without it
         self.model.load_state_dict(state["model"], assign=assign)
         self.step = int(state["step"])
 

@@ -25,6 +25,7 @@ from omnire.errors import ConfigError, UserError
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
 from omnire.losses import LossContext, masked_mean
 from omnire.observations import Observations
+from omnire.resolution import downscale_camera, downscale_factor
 from omnire.optim import Optimizers
 from omnire.rundir import RunDirectory, RunDirectoryError, RunInfo, find_checkpoint, step_of
 from omnire.runconfig import TrainConfig, TrainerConfig, absolute_argv
@@ -108,7 +109,7 @@ class Trainer:
             if weight != 0:
                 self.losses[name] = (plugins.losses.get(name).fn, weight)
         self.model = self.recon.model
-        self.optimizers = Optimizers(dict(self.model.nodes), tc.max_steps)
+        self.optimizers = Optimizers(self.model.optimizable(), tc.max_steps)
         self.strategy = AbsGradStrategy(config.method.densify, self.model.scene_radius, tc.max_steps)
         # sky masks only feed the opacity loss, which only means something with a sky node
         self.use_sky_masks = bool(self.model.environment_nodes()) and "opacity" in self.losses
@@ -187,21 +188,28 @@ class Trainer:
         return self.recon.sh_degree(self.step)
 
     # ------------------------------------------------------------------ training
-    def loss_context(self, view: View, result) -> LossContext:
+    def loss_context(self, view: View, result, factor: int = 1) -> LossContext:
+        """What the losses compare ``result`` (rendered at 1 / ``factor`` resolution) with."""
         obs = self.observations
-        lidar = obs.lidar(view) if "depth" in self.losses else None
+        lidar = obs.lidar(view, factor) if "depth" in self.losses else None
         weight = self.config.method.dynamic_pixel_weight
         pixel_weights = None
         if weight != 1.0 and self.scene.tracks:
-            pixel_weights = 1.0 + (weight - 1.0) * obs.dynamic_mask(view, "all")
+            pixel_weights = 1.0 + (weight - 1.0) * obs.dynamic_mask(view, "all", factor)
         return LossContext(
-            rgb=result.rgb, depth=result.depth, alpha=result.alpha, target=obs.image(view),
+            rgb=result.rgb, depth=result.depth, alpha=result.alpha, target=obs.image(view, factor),
             pixel_weights=pixel_weights,
             lidar_pixels=None if lidar is None else lidar[0], lidar_depth=None if lidar is None else lidar[1],
-            sky_mask=obs.sky_mask(view) if self.use_sky_masks else None,
-            scene_pixels=obs.scene_pixels(view),
+            sky_mask=obs.sky_mask(view, factor) if self.use_sky_masks else None,
+            scene_pixels=obs.scene_pixels(view, factor),
             step=self.step,
         )
+
+    def resolution_factor(self, step: Optional[int] = None) -> int:
+        """Training images are rendered at 1 / this of their resolution at ``step`` (default:
+        the current step); see :mod:`omnire.resolution`."""
+        m = self.config.method
+        return downscale_factor(self.step if step is None else step, m.num_downscales, m.resolution_schedule)
 
     def sample_view(self) -> View:
         """The next training view (uniform over the training views, seeded)."""
@@ -211,8 +219,10 @@ class Trainer:
     def train_step(self, view: Optional[View] = None) -> dict[str, float]:
         """One optimisation step on ``view`` (default: a sampled training view)."""
         view = self.sample_view() if view is None else view
-        result = self.recon.render_view(view, step=self.step)
-        ctx = self.loss_context(view, result)
+        factor = self.resolution_factor()
+        camera = downscale_camera(self.recon.camera(view), factor)
+        result = self.recon.render(camera, self.recon.time(view.frame), step=self.step)
+        ctx = self.loss_context(view, result, factor)
         terms: dict[str, torch.Tensor] = {}
         for name, (fn, weight) in self.losses.items():
             value = fn(ctx)
@@ -223,6 +233,8 @@ class Trainer:
             for name, value in self.model.nodes[node_name].regularization(output).items():
                 if reg_w.get(name, 0.0) != 0.0:
                     terms[name] = reg_w[name] * value
+        if self.model.exposure is not None:
+            terms["exposure"] = self.config.method.exposure_weight * self.model.exposure.regularization()
         loss = sum(terms.values())
         if not torch.isfinite(loss):
             raise TrainingError(
@@ -230,9 +242,8 @@ class Trainer:
                 + ", ".join(f"{k}={float(v):.4g}" for k, v in terms.items()) + "); no checkpoint was written"
             )
         loss.backward()
-        cam = self.scene.cameras[view.camera]
         self.strategy.accumulate(self.model.gaussian_nodes(), result.slices, result.absgrad2d, result.radii,
-                                 cam.width, cam.height)
+                                 camera.width, camera.height)
         self.optimizers.step(self.step)
         self.optimizers.zero_grad()
         self.step += 1
@@ -386,7 +397,7 @@ class Trainer:
     def load_state(self, state: dict) -> None:
         """Continue from a checkpoint state (model, optimisers, densification, RNGs)."""
         self.recon.load_state(state)
-        self.optimizers = Optimizers(dict(self.model.nodes), self.config.trainer.max_steps)
+        self.optimizers = Optimizers(self.model.optimizable(), self.config.trainer.max_steps)
         self.optimizers.load_state_dict(state["optimizers"])
         self.strategy.load_state_dict(state["strategy"])
         torch.set_rng_state(state["rng_torch"])
