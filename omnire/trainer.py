@@ -159,8 +159,9 @@ class Trainer:
         for key, what, config in (("dataparser", "data selection (dataparser flags)", mine.dataparser),
                                   ("method", "method settings (--method.* flags)", mine.method)):
             da, db = _comparable(config), recorded.get(key, {})
-            if da != db:
-                changed = sorted(k for k in set(da) | set(db) if da.get(k) != db.get(k))
+            # settings the recorded run did not have yet (added to omnire since) are not compared
+            changed = sorted(k for k in set(da) | set(db) if k in db and da.get(k) != db.get(k))
+            if changed:
                 raise ConfigError(f"--trainer.resume: the {what} differ from the recorded run's: "
                                   + ", ".join(f"{k}: {db.get(k)!r} -> {da.get(k)!r}" for k in changed[:6]))
 

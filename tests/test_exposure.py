@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from omnire.data.scene import SceneTime
+from omnire.errors import ConfigError
 from omnire.exposure import ExposureCompensation
 from omnire.plugins import load_plugins
 from omnire.trainer import TrainConfig, Trainer, TrainerConfig
@@ -90,3 +91,34 @@ def test_a_checkpoint_from_before_exposure_loads_and_renders_without_it(tiny_sce
     plain.recon.load_state(state)
     with torch.no_grad():
         assert torch.equal(trainer.recon.render_view(view).rgb, plain.recon.render_view(view).rgb)
+
+
+def test_a_run_recorded_before_exposure_resumes_without_it(tiny_scene, tmp_path):
+    import json
+
+    plugins = load_plugins()
+    cfg = plugins.methods.get("3dgs").config_factory()
+    cfg.exposure = False
+    tc = TrainerConfig(max_steps=4, output_dir=tmp_path, run_name="old", checkpoint_every=2, progress=False,
+                       eval_train_views=0)
+    old = Trainer(TrainConfig("3dgs", "test", cfg, None, tc), plugins, argv=[], scene=tiny_scene)
+    old.train()
+    info_path = old.run_dir / "run.json"
+    info = json.loads(info_path.read_text())
+    for key in [k for k in info["settings"]["method"] if k.startswith("exposure")]:
+        del info["settings"]["method"][key]  # as recorded before the setting existed
+    info_path.write_text(json.dumps(info))
+    new_cfg = plugins.methods.get("3dgs").config_factory()  # exposure on by default
+    tc2 = TrainerConfig(max_steps=6, output_dir=tmp_path, run_name="old", resume=old.run_dir, progress=False,
+                        eval_train_views=0)
+    resumed = Trainer(TrainConfig("3dgs", "test", new_cfg, None, tc2), plugins, argv=[], scene=tiny_scene)
+    assert resumed.step == 4 and resumed.model.exposure is None
+    resumed.train()
+    assert resumed.step == 6
+    # a setting the recorded run did have is still compared
+    other = plugins.methods.get("3dgs").config_factory()
+    other.sh_degree_interval += 1
+    tc3 = TrainerConfig(max_steps=8, output_dir=tmp_path, run_name="old", resume=old.run_dir, progress=False,
+                        eval_train_views=0)
+    with pytest.raises(ConfigError, match="sh_degree_interval"):
+        Trainer(TrainConfig("3dgs", "test", other, None, tc3), plugins, argv=[], scene=tiny_scene)
