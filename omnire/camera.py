@@ -98,6 +98,19 @@ class Camera:
         K[1] *= height / self.height
         return Camera(K, self.cam_to_world, int(width), int(height), self.name, self._world_to_cam)
 
+    def downscaled(self, factor: int) -> "Camera":
+        """The same camera rendering (H // factor, W // factor) pixels, each covering the
+        factor x factor block of full-resolution pixels it replaces (K[:2] / factor; rows and
+        columns past the last whole block are dropped)."""
+        if factor == 1:
+            return self
+        if factor < 1 or self.width < factor or self.height < factor:
+            raise ValueError(f"Camera.downscaled: factor {factor} for a {self.width}x{self.height} camera")
+        K = self.K.clone()
+        K[:2] /= factor
+        return Camera(K, self.cam_to_world, self.width // factor, self.height // factor, self.name,
+                      self._world_to_cam)
+
     def to(self, device: torch.device | str) -> "Camera":
         w2c = None if self._world_to_cam is None else self._world_to_cam.to(device)
         return Camera(self.K.to(device), self.cam_to_world.to(device), self.width, self.height, self.name, w2c)

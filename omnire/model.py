@@ -154,7 +154,7 @@ class SceneModel(nn.Module):
         self.nodes = nn.ModuleDict(nodes)
         self._background = torch.tensor(method.background_color, dtype=torch.float32, device=device)
         self.exposure: Optional[ExposureCompensation] = None
-        if getattr(method, "exposure", False):
+        if method.exposure:
             self.exposure = ExposureCompensation([c.name for c in scene.cameras], scene.num_frames,
                                                  scene.train_frames, method.exposure_lr, device)
 

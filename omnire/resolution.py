@@ -7,17 +7,15 @@ still coarse. The schedule follows nerfstudio's splatfacto: the downscale factor
 
 Downscaling a view is exact in geometry: the image keeps its top-left ``(H // f) * f`` x
 ``(W // f) * f`` pixels, each low-resolution pixel is the mean of its f x f block (area
-averaging) and the camera's intrinsics are divided by f, so low-resolution pixel j covers
-full-resolution pixels [j f, (j + 1) f). Masks and pixel weights are averaged the same way
-(fractional values weigh a block by how much of it is masked); LiDAR returns keep their
-pixel's block and, when several share one, the nearest.
+averaging) and the camera's intrinsics are divided by f (:meth:`Camera.downscaled`), so
+low-resolution pixel j covers full-resolution pixels [j f, (j + 1) f). Masks and pixel
+weights are averaged the same way (fractional values weigh a block by how much of it is
+masked); LiDAR returns keep their pixel's block and, when several share one, the nearest.
 """
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-
-from omnire.camera import Camera
 
 
 def downscale_factor(step: int, num_downscales: int, resolution_schedule: int) -> int:
@@ -27,22 +25,9 @@ def downscale_factor(step: int, num_downscales: int, resolution_schedule: int) -
     return 2 ** max(num_downscales - step // resolution_schedule, 0)
 
 
-def downscale_camera(camera: Camera, factor: int) -> Camera:
-    """``camera`` rendering (H // factor, W // factor) pixels, each the block of factor x
-    factor full-resolution pixels it averages (K[:2] / factor)."""
-    if factor == 1:
-        return camera
-    if factor < 1 or camera.width < factor or camera.height < factor:
-        raise ValueError(f"downscale_camera: factor {factor} for a {camera.width}x{camera.height} camera")
-    K = camera.K.clone()
-    K[:2] /= factor
-    return Camera(K, camera.cam_to_world, camera.width // factor, camera.height // factor, camera.name,
-                  camera._world_to_cam)
-
-
 def downscale_image(image: torch.Tensor, factor: int) -> torch.Tensor:
     """(H, W, C) -> (H // f, W // f, C): means of f x f blocks (rows / columns past the last
-    whole block are dropped, as in :func:`downscale_camera`)."""
+    whole block are dropped, as in :meth:`Camera.downscaled`)."""
     if factor == 1:
         return image
     if image.ndim != 3:

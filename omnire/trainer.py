@@ -25,7 +25,7 @@ from omnire.errors import ConfigError, UserError
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
 from omnire.losses import LossContext, masked_mean
 from omnire.observations import Observations
-from omnire.resolution import downscale_camera, downscale_factor
+from omnire.resolution import downscale_factor
 from omnire.optim import Optimizers
 from omnire.rundir import RunDirectory, RunDirectoryError, RunInfo, find_checkpoint, step_of
 from omnire.runconfig import TrainConfig, TrainerConfig, absolute_argv
@@ -221,7 +221,7 @@ class Trainer:
         """One optimisation step on ``view`` (default: a sampled training view)."""
         view = self.sample_view() if view is None else view
         factor = self.resolution_factor()
-        camera = downscale_camera(self.recon.camera(view), factor)
+        camera = self.recon.camera(view).downscaled(factor)
         result = self.recon.render(camera, self.recon.time(view.frame), step=self.step)
         ctx = self.loss_context(view, result, factor)
         terms: dict[str, torch.Tensor] = {}

@@ -7,7 +7,7 @@ import torch
 from omnire.camera import Camera
 from omnire.observations import Observations
 from omnire.plugins import load_plugins
-from omnire.resolution import downscale_camera, downscale_factor, downscale_image, downscale_pixel_samples
+from omnire.resolution import downscale_factor, downscale_image, downscale_pixel_samples
 from omnire.trainer import TrainConfig, Trainer, TrainerConfig
 
 
@@ -24,7 +24,7 @@ def test_downscaled_camera_pixel_is_the_block_of_full_resolution_pixels(factor):
     K = torch.tensor([[300.0, 0, 241.3], [0, 310.0, 133.7], [0, 0, 1]])
     c2w = torch.eye(4)
     cam = Camera(K, c2w, 480, 270)
-    small = downscale_camera(cam, factor)
+    small = cam.downscaled(factor)
     assert (small.width, small.height) == (480 // factor, 270 // factor)
     pts = torch.cat([torch.rand(200, 2, generator=g) * 8 - 4, torch.rand(200, 1, generator=g) * 20 + 2], 1)
 
@@ -95,7 +95,7 @@ def test_training_step_at_half_resolution_compares_half_resolution_images(tiny_s
     view = trainer.train_views[0]
     assert trainer.resolution_factor() == 2
     with torch.no_grad():
-        cam = downscale_camera(trainer.recon.camera(view), 2)
+        cam = trainer.recon.camera(view).downscaled(2)
         rgb = trainer.recon.render(cam, trainer.recon.time(view.frame), step=0).rgb.clamp(0, 1)
         target = trainer.observations.image(view, 2)
         expected = float(-10 * torch.log10(((rgb - target) ** 2).mean()))
