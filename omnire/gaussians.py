@@ -11,7 +11,7 @@ import math
 
 import torch
 
-from omnire.geometry import quat_multiply, rotmat_to_quat
+from omnire.geometry import quat_left_matrix, quat_multiply, rotmat_to_quat
 
 SH_C0 = 0.28209479177387814
 _SH_C1 = 0.4886025119029199
@@ -112,13 +112,13 @@ class Gaussians:
         SH coefficients are not rotated (view directions are evaluated in world space by
         callers that need it; for rigid actors the error is second order and the
         reference implementation makes the same choice)."""
-        if rotation.ndim == 2:
-            means = self.means @ rotation.T + translation
-            q = rotmat_to_quat(rotation)[None].expand_as(self.quats)
+        if rotation.ndim == 2:  # one rotation for all: two matrix products (forward and backward)
+            means = torch.addmm(translation.expand_as(self.means), self.means, rotation.T)
+            quats = self.quats @ quat_left_matrix(rotmat_to_quat(rotation)).T
         else:
             means = torch.einsum("nij,nj->ni", rotation, self.means) + translation
-            q = rotmat_to_quat(rotation)
-        return dataclasses.replace(self, means=means, quats=quat_multiply(q, self.quats))
+            quats = quat_multiply(rotmat_to_quat(rotation), self.quats)
+        return dataclasses.replace(self, means=means, quats=quats)
 
     def subset(self, rows: torch.Tensor) -> "Gaussians":
         """The Gaussians at ``rows`` (M,) (autograd flows back to the full set)."""

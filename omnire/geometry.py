@@ -41,6 +41,14 @@ def numpy_compatible(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+def quat_left_matrix(a: torch.Tensor) -> torch.Tensor:
+    """(4,) wxyz quaternion -> (4, 4) L with ``quat_multiply(a, b) == L @ b``: a product
+    with one fixed quaternion as a single matrix product (forward and backward)."""
+    w, x, y, z = a.unbind(-1)
+    return torch.stack([torch.stack([w, -x, -y, -z]), torch.stack([x, w, -z, y]),
+                        torch.stack([y, z, w, -x]), torch.stack([z, -y, x, w])])
+
+
 @numpy_compatible
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product of (..., 4) wxyz quaternions (broadcasting)."""

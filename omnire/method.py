@@ -46,6 +46,13 @@ class MethodConfig:
     """Adam lr of the exposure transforms."""
     exposure_weight: float = 1e-2
     """Weight of the L2 penalty on the transforms' deviation from identity."""
+    camera_pose_refinement: bool = False
+    """Learn a rigid correction of each recorded camera pose per training frame
+    (omnire/camerapose.py; held-out frames interpolate it)."""
+    camera_pose_lr: float = 1e-4
+    """Adam lr of the pose corrections (rad for rotations, m for translations)."""
+    camera_pose_weight: float = 1e-2
+    """Weight of the L2 penalty on the pose corrections."""
     background_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Colour under the Gaussians when the method has no environment (sky) node."""
     cull_to_view: bool = True

@@ -14,6 +14,7 @@ import torch
 from torch import nn
 
 from omnire.camera import Camera, in_frustum
+from omnire.camerapose import CameraPoseRefinement
 from omnire.data.scene import SceneData, SceneTime
 from omnire.errors import UserError
 from omnire.exposure import ExposureCompensation
@@ -157,13 +158,31 @@ class SceneModel(nn.Module):
         if method.exposure:
             self.exposure = ExposureCompensation([c.name for c in scene.cameras], scene.num_frames,
                                                  scene.train_frames, method.exposure_lr, device)
+        self.camera_poses: Optional[CameraPoseRefinement] = None
+        if method.camera_pose_refinement:
+            self.camera_poses = CameraPoseRefinement([c.name for c in scene.cameras], scene.num_frames,
+                                                     scene.train_frames, method.camera_pose_lr, device)
 
     def optimizable(self) -> dict[str, Any]:
-        """What the optimisers step, by name: the nodes, plus ``exposure`` when learned."""
+        """What the optimisers step, by name: the nodes, plus ``exposure`` and
+        ``camera_poses`` when learned."""
         out: dict[str, Any] = dict(self.nodes)
         if self.exposure is not None:
             out["exposure"] = self.exposure
+        if self.camera_poses is not None:
+            out["camera_poses"] = self.camera_poses
         return out
+
+    def seen_from(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Camera, t: SceneTime
+                  ) -> list[tuple[str, Optional[NodeOutput]]]:
+        """Node outputs as ``camera`` sees them at its refined pose (omnire/camerapose.py):
+        moved by the correction's world transform; unchanged without refinement or for an
+        unrecorded camera."""
+        transform = self.camera_poses.world_transform(camera, t) if self.camera_poses is not None else None
+        if transform is None:
+            return parts
+        return [(name, None if out is None else dataclasses.replace(out, gaussians=out.gaussians.transform(*transform)))
+                for name, out in parts]
 
     def finish_image(self, rgb: torch.Tensor, alpha: torch.Tensor, env: dict[str, EnvironmentNode],
                      camera: Camera, t: SceneTime) -> torch.Tensor:
@@ -187,14 +206,15 @@ class SceneModel(nn.Module):
     def gather(self, camera: Optional[Camera], t: SceneTime, step: Optional[int] = None,
                hidden: frozenset[str] = frozenset()) -> tuple[Optional[Gaussians], list[NodeSlice], dict[str, NodeOutput]]:
         """World-space Gaussians of every node present at ``t`` (culled to ``camera`` when
-        the method says so and a camera is given), the node slices of the concatenation and
-        each node's output. Nodes named in ``hidden`` are left out."""
+        the method says so and a camera is given; as it sees them at its refined pose), the
+        node slices of the concatenation and each node's output. Nodes named in ``hidden``
+        are left out."""
         parts = []
         for name, node in self.gaussian_nodes().items():
             if name in hidden:
                 continue
             parts.append((name, node.gaussians_at(t, camera, step)))
-        return self.assemble(parts, camera)
+        return self.assemble(self.seen_from(parts, camera, t) if camera is not None else parts, camera)
 
     def assemble(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Optional[Camera]
                  ) -> tuple[Optional[Gaussians], list[NodeSlice], dict[str, NodeOutput]]:
@@ -252,7 +272,9 @@ class SceneModel(nn.Module):
                      sh_degree: int = 3, hidden: frozenset[str] = frozenset()) -> RenderResult:
         """Render node outputs (name, output or None), e.g. actors in edited states: the
         inference path when :meth:`fast_inference`, the fused training path when
-        :meth:`fused_training`, else :meth:`assemble` + :meth:`composite`."""
+        :meth:`fused_training`, else :meth:`assemble` + :meth:`composite`. A recorded
+        camera sees them at its refined pose (:meth:`seen_from`)."""
+        parts = self.seen_from(parts, camera, t)
         if self.fast_inference():
             return self._render_native(parts, camera, t, sh_degree, hidden, train=False)
         if self.fused_training():

@@ -104,6 +104,8 @@ class Reconstruction:
             node.prepare_load(state["model"], prefix=f"nodes.{name}.")
         if self.model.exposure is not None and "exposure.delta" not in state["model"]:
             self.model.exposure = None  # trained before exposure was learned: render without it
+        if self.model.camera_poses is not None and "camera_poses.delta" not in state["model"]:
+            self.model.camera_poses = None  # trained before pose refinement was learned: recorded poses
         self.model.load_state_dict(state["model"], assign=assign)
         self.step = int(state["step"])
 

@@ -19,8 +19,9 @@ from typing import Optional
 
 import torch
 
+from omnire.camera import Camera
 from omnire.config import to_dict
-from omnire.data.scene import SceneData, View
+from omnire.data.scene import SceneData, SceneTime, View
 from omnire.errors import ConfigError, UserError
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
 from omnire.losses import LossContext, masked_mean
@@ -217,13 +218,11 @@ class Trainer:
         i = int(torch.randint(len(self.train_views), (1,), generator=self.sampler))
         return self.train_views[i]
 
-    def train_step(self, view: Optional[View] = None) -> dict[str, float]:
-        """One optimisation step on ``view`` (default: a sampled training view)."""
-        view = self.sample_view() if view is None else view
-        factor = self.resolution_factor()
-        camera = self.recon.camera(view).downscaled(factor)
-        result = self.recon.render(camera, self.recon.time(view.frame), step=self.step)
-        ctx = self.loss_context(view, result, factor)
+    def loss_terms(self, ctx: LossContext, result, camera: Camera, t: SceneTime) -> dict[str, torch.Tensor]:
+        """The weighted loss terms of one view (``camera`` at moment ``t``) rendered as
+        ``result``: the method's losses on ``ctx``, the node regularisers of the result's
+        outputs, and the penalties on the view's exposure and camera-pose corrections when
+        those are learned."""
         terms: dict[str, torch.Tensor] = {}
         for name, (fn, weight) in self.losses.items():
             value = fn(ctx)
@@ -234,8 +233,22 @@ class Trainer:
             for name, value in self.model.nodes[node_name].regularization(output).items():
                 if reg_w.get(name, 0.0) != 0.0:
                     terms[name] = reg_w[name] * value
-        if self.model.exposure is not None:
-            terms["exposure"] = self.config.method.exposure_weight * self.model.exposure.regularization()
+        for name, learned, weight in (("exposure", self.model.exposure, self.config.method.exposure_weight),
+                                      ("camera_pose", self.model.camera_poses, self.config.method.camera_pose_weight)):
+            value = None if learned is None else learned.regularization(camera.name, t)
+            if value is not None:
+                terms[name] = weight * value
+        return terms
+
+    def train_step(self, view: Optional[View] = None) -> dict[str, float]:
+        """One optimisation step on ``view`` (default: a sampled training view)."""
+        view = self.sample_view() if view is None else view
+        factor = self.resolution_factor()
+        camera = self.recon.camera(view).downscaled(factor)
+        t = self.recon.time(view.frame)
+        result = self.recon.render(camera, t, step=self.step)
+        ctx = self.loss_context(view, result, factor)
+        terms = self.loss_terms(ctx, result, camera, t)
         loss = sum(terms.values())
         if not torch.isfinite(loss):
             raise TrainingError(

@@ -9,7 +9,7 @@ import torch
 
 from omnire.data.scene import SceneDataError, holdout_split
 from omnire.gaussians import Gaussians, eval_sh, num_sh_bases, rgb_to_sh0
-from omnire.geometry import quat_to_rotmat, rotmat_to_quat
+from omnire.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
 from omnire.io import safe_pickle
 from omnire.lidar import project_points
 
@@ -35,6 +35,8 @@ def test_transform_rotates_means_and_covariances():
     h = g.transform(R, t)
     torch.testing.assert_close(h.means, g.means @ R.T + t)
     torch.testing.assert_close(covariance(h), R @ covariance(g) @ R.T)
+    # the shared rotation's matrix form of the quaternion product is the Hamilton product
+    torch.testing.assert_close(h.quats, quat_multiply(rotmat_to_quat(R)[None].expand(7, 4), g.quats))
     # per-Gaussian rotations
     Rs = quat_to_rotmat(torch.randn(7, 4, dtype=torch.float64))
     h = g.transform(Rs, t.expand(7, 3))

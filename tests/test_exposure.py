@@ -23,7 +23,7 @@ def test_apply_is_the_affine_transform_per_pixel():
     exp = make()
     rgb = torch.rand(4, 5, 3, generator=torch.Generator().manual_seed(1))
     out = exp.apply(rgb, "left", SceneTime(2.0, 0.2))
-    d = exp.delta[1, 2].detach().double()
+    d = exp.per_view[1, 2].detach().double()
     A, b = torch.eye(3, dtype=torch.float64) + d[:, :3], d[:, 3]
     for y in range(4):
         for x in range(5):
@@ -32,7 +32,7 @@ def test_apply_is_the_affine_transform_per_pixel():
 
 def test_held_out_and_fractional_frames_interpolate_training_frames():
     exp = make()
-    d = exp.delta.detach()
+    d = exp.per_view.detach()
     # frame 1 is held out, between training frames 0 and 2; frame 4 between 3 and 5
     assert torch.allclose(exp.delta_at("front", SceneTime(1.0, 0.1)), 0.5 * (d[0, 0] + d[0, 2]))
     assert torch.allclose(exp.delta_at("front", SceneTime(4.0, 0.4)), 0.5 * (d[0, 3] + d[0, 5]))
@@ -57,14 +57,29 @@ def test_training_learns_the_transform_of_the_trained_view_only(tiny_scene, tmp_
         trainer.model.exposure = exp
     assert torch.equal(a, b)
     trainer.train_step(view)
-    changed = exp.delta.detach().abs().sum((-1, -2)) > 0  # (cameras, frames)
+    changed = exp.per_view.detach().abs().sum((-1, -2)) > 0  # (cameras, frames)
     expected = torch.zeros_like(changed)
     expected[view.camera, view.frame] = True
     assert torch.equal(changed, expected)
+    # lazy Adam: a step on another view leaves this view's transform where it was (a dense
+    # step would keep moving it with the momentum of its last gradient)
+    before = exp.per_view.detach().clone()
+    other = next(v for v in trainer.train_views if (v.camera, v.frame) != (view.camera, view.frame))
+    trainer.train_step(other)
+    assert torch.equal(exp.per_view.detach()[view.camera, view.frame], before[view.camera, view.frame])
+    assert not torch.equal(exp.per_view.detach()[other.camera, other.frame], before[other.camera, other.frame])
     assert "exposure.delta" in trainer.model.state_dict()
     path = trainer.save_checkpoint()
     state = torch.load(path, weights_only=False)
     assert torch.equal(state["model"]["exposure.delta"], exp.delta.detach())
+
+
+def test_a_checkpoint_with_per_camera_frame_rows_loads():
+    exp = make()
+    old = {"delta": exp.per_view.detach().clone()}  # (C, F, 3, 4), as written before the rows were flattened
+    fresh = ExposureCompensation(["front", "left"], 6, np.array((0, 2, 3, 5)), 1e-3, torch.device("cpu"))
+    fresh.load_state_dict(old)
+    assert torch.equal(fresh.per_view, old["delta"])
 
 
 def test_exposure_is_learned_by_every_method_by_default():

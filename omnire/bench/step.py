@@ -118,12 +118,7 @@ def time_step(trainer, view, fused: bool) -> tuple[dict[str, float], dict[str, f
     result = model.render_parts(parts, camera, t, recon.sh_degree(trainer.step))
     clock()
     ctx = trainer.loss_context(view, result)
-    terms = [w * v for fn, w in trainer.losses.values() if (v := fn(ctx)) is not None]
-    reg_w = trainer.config.method.regularization_weights
-    for node_name, output in result.outputs.items():
-        for name, value in model.nodes[node_name].regularization(output).items():
-            if reg_w.get(name, 0.0) != 0.0:
-                terms.append(reg_w[name] * value)
+    terms = list(trainer.loss_terms(ctx, result, camera, t).values())
     loss = sum(terms)
     clock()
     loss.backward()
