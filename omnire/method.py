@@ -46,9 +46,10 @@ class MethodConfig:
     """Adam lr of the exposure transforms."""
     exposure_weight: float = 1e-2
     """Weight of the L2 penalty on the transforms' deviation from identity."""
-    camera_pose_refinement: bool = False
+    camera_pose_refinement: bool = True
     """Learn a rigid correction of each recorded camera pose per training frame
-    (omnire/camerapose.py; held-out frames interpolate it)."""
+    (omnire/camerapose.py; held-out frames interpolate it); --method.no-camera-pose-refinement
+    renders from the recorded poses."""
     camera_pose_lr: float = 1e-4
     """Adam lr of the pose corrections (rad for rotations, m for translations)."""
     camera_pose_weight: float = 1e-2

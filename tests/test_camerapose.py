@@ -114,7 +114,7 @@ def test_training_renders_at_the_refined_pose_and_learns_the_trained_view_only(t
     assert trainer.model.camera_poses is None
 
 
-def test_pose_refinement_is_off_by_default():
+def test_pose_refinement_is_on_by_default_for_every_method():
     plugins = load_plugins()
     for name in plugins.methods.names():
-        assert plugins.methods.get(name).config_factory().camera_pose_refinement is False
+        assert plugins.methods.get(name).config_factory().camera_pose_refinement is True
