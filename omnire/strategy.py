@@ -2,14 +2,15 @@
 
 Per Gaussian the strategy accumulates |dL/d means2d| summed over pixels (from the
 rasterizer's ``absgrad2d``), scaled to normalised device units (x W/2, x H/2 as in
-3DGS/gsplat), and how often it was visible. Every ``refine_every`` steps between
-``refine_start`` and ``refine_stop``:
+3DGS/gsplat), and how often it was visible. Every ``refine_every`` steps from
+``refine_start`` on:
 
-- grow: Gaussians whose mean accumulated gradient exceeds ``grad_threshold`` are cloned
-  when small (max scale <= ``scale_threshold`` x scene radius) and split in two when large
-  (samples from the Gaussian, scales / 1.6);
+- grow (before ``refine_stop``): Gaussians whose mean accumulated gradient exceeds
+  ``grad_threshold`` are cloned when small (max scale <= ``scale_threshold`` x scene
+  radius) and split in two when large (samples from the Gaussian, scales / 1.6);
 - prune: opacity < ``prune_opacity``, too large (> ``prune_scale`` x scene radius, after the
-  first opacity reset), non-finite, or flagged by the node (``Node.extra_prune_mask``);
+  first opacity reset, when there was one), non-finite, or flagged by the node
+  (``Node.extra_prune_mask``);
 - nodes that rely on a row order (``Node.row_order``) get their rows permuted back;
 - every ``reset_every`` steps opacities are clamped to 2 x ``prune_opacity``, only while
   growth is still on (a reset needs densification steps after it to recover).
@@ -154,7 +155,10 @@ class AbsGradStrategy:
         c = self.config
         p = node.gaussian_params
         prune = torch.sigmoid(p["opacities"]) < c.prune_opacity
-        if c.reset_every > 0 and step > c.reset_every:
+        # size pruning only once an opacity reset has happened (the first is at reset_every,
+        # if growth is still on then): without one, large Gaussians that stand for the sky
+        # and far surfaces would be cut from a fitted scene with no steps to regrow them
+        if c.reset_every > 0 and c.reset_every < self.refine_stop and step > c.reset_every:
             prune |= torch.exp(p["scales"]).max(dim=-1).values > c.prune_scale * self.scene_radius
         for k in p.keys():
             prune |= ~torch.isfinite(p[k].reshape(p[k].shape[0], -1)).all(dim=1)

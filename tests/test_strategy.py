@@ -125,6 +125,20 @@ def test_no_growth_or_reset_in_the_second_half_of_a_short_run():
     assert torch.sigmoid(node.gaussian_params["opacities"]).max() <= 0.0100001
 
 
+def test_no_size_pruning_when_no_opacity_reset_happened():
+    # a 3200-step run grows until 1600, so its reset at 3000 never happens: large Gaussians
+    # (the sky and far surfaces of a method without a sky node) must survive step 3100
+    node, opt = setup(4)
+    with torch.no_grad():
+        node.gaussian_params["scales"][0] = math.log(50.0)  # > prune_scale x scene radius (0.1 x 100)
+    for max_steps, expected in ((3200, 4), (8000, 3)):  # 8000: a reset at 3000 during growth
+        strat = AbsGradStrategy(DensifyConfig(refine_start=0, refine_every=100, reset_every=3000), 100.0,
+                                max_steps=max_steps)
+        strat.accumulate({"toy": node}, [NodeSlice("toy", 0, 4, None)], torch.zeros(4, 2), torch.ones(4), 2, 2)
+        strat.step({"toy": node}, opt, 3100)
+        assert node.num_gaussians == expected
+
+
 def test_optimizer_is_fused_and_steps_like_plain_adam():
     class OneParam(Node):
         def __init__(self):
