@@ -295,7 +295,10 @@ CROP_POLICIES = {
     "roi 1.25": {"mode": "roi", "roi_scale": 1.25, "upscale_to": 256, "mask_occluders": False},
     "roi 1.5": {"mode": "roi", "roi_scale": 1.5, "upscale_to": 256, "mask_occluders": False},
     "roi 1.25, no bicubic upscale": {"mode": "roi", "roi_scale": 1.25, "upscale_to": 0, "mask_occluders": False},
-    "roi 1.25, mask occluders": {"mode": "roi", "roi_scale": 1.25, "upscale_to": 256, "mask_occluders": True},
+    "roi 1.25, mask occluder boxes": {"mode": "roi", "roi_scale": 1.25, "upscale_to": 256, "mask_occluders": True,
+                                      "mask_shape": "box"},
+    "roi 1.25, mask occluder bodies": {"mode": "roi", "roi_scale": 1.25, "upscale_to": 256, "mask_occluders": True,
+                                       "mask_shape": "body"},
 }
 
 

@@ -7,7 +7,8 @@ optional betas) and 2D boxes, from any pose-estimator plugin (registry
 
 (a) :func:`match_tracklets`: per camera, tracklets are assigned one-to-one to the scene's
     3D pedestrian tracks by the maximum mean IoU between the tracklet boxes and the
-    projected 3D boxes over the tracklet's frames (Hungarian assignment);
+    projected 3D boxes (cut to the rows the tracklet box spans, so a partly hidden person
+    still matches) over the tracklet's frames (Hungarian assignment);
 (b) :func:`complete_rotations`: frames without an estimate (occluded, missed, or whose
     match was too weak) get rotations SLERPed from the neighbouring observed frames; frames
     before the first / after the last observation hold the nearest one;
@@ -164,6 +165,57 @@ def project_box(track: ActorTrack, scene: SceneData, camera: int, frame: int, ne
     return box
 
 
+# Part of an actor's 3D box its body fills, as (length, width) fractions about the box
+# centre and a height fraction from the box bottom, for masking occluders in image crops:
+# a walker's box spans the stride (length) and the arm swing (width) while the trunk and the
+# head, which is what hides someone behind, are a column in the middle; a car's box is as
+# tall as its cabin, the bonnet and boot are lower. Measured on the synthetic crowd (joints
+# that pass the rendered depth test, 917 pedestrian crops): whole projected boxes of nearer
+# actors cover 50% of the visible joints of the person they are meant to uncover, these
+# extents 17%, while still covering 77% of the occluders' visible joints.
+OCCLUDER_EXTENT = {"human": (0.4, 0.7, 1.0), "vehicle": (1.0, 1.0, 0.6)}
+
+
+def project_outline(track: ActorTrack, scene: SceneData, camera: int, frame: int,
+                    extent: tuple[float, float, float] = (1.0, 1.0, 1.0), near: float = 0.1) -> Optional[np.ndarray]:
+    """(K, 2) convex outline (pixels, not clipped to the image) of the track's 3D box scaled
+    by ``extent`` (length and width about the centre, height from the bottom) projected into
+    ``camera`` at ``frame``; None when absent or behind the camera."""
+    if not track.present[frame]:
+        return None
+    unit = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)])
+    size = np.asarray(track.size, dtype=np.float64)
+    local = unit * size * [extent[0], extent[1], 1.0]
+    local[:, 2] = -size[2] / 2 + (unit[:, 2] + 0.5) * size[2] * extent[2]
+    world = local @ track.poses[frame][:3, :3].T + track.poses[frame][:3, 3]
+    cam = scene.cameras[camera]
+    w2c = np.linalg.inv(cam.cam_to_world[frame])
+    p = world @ w2c[:3, :3].T + w2c[:3, 3]
+    if (p[:, 2] < near).any():
+        return None
+    uv = p[:, :2] / p[:, 2:] @ cam.intrinsics[:2, :2].T + cam.intrinsics[:2, 2]
+    return convex_hull(uv)
+
+
+def convex_hull(points: np.ndarray) -> np.ndarray:
+    """(K, 2) convex hull of (N, 2) points, counter-clockwise in image axes (monotone chain)."""
+    pts = sorted(set(map(tuple, np.asarray(points, dtype=np.float64))))
+    if len(pts) <= 2:
+        return np.array(pts).reshape(-1, 2)
+
+    def half(seq):
+        out: list = []
+        for q in seq:
+            while len(out) >= 2 and ((out[-1][0] - out[-2][0]) * (q[1] - out[-2][1])
+                                     - (out[-1][1] - out[-2][1]) * (q[0] - out[-2][0])) <= 0:
+                out.pop()
+            out.append(q)
+        return out
+
+    lower, upper = half(pts), half(pts[::-1])
+    return np.array(lower[:-1] + upper[:-1])
+
+
 def box_iou(a: np.ndarray, b: np.ndarray) -> float:
     """IoU of two (4,) x0, y0, x1, y1 boxes."""
     iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
@@ -173,14 +225,32 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(inter / union) if union > 0 else 0.0
 
 
+def seen_part_iou(seen: np.ndarray, box: np.ndarray) -> float:
+    """IoU of a detection box ``seen`` (the extent of what an estimator saw of a person) with
+    the person's projected 3D box ``box`` cut to the rows ``seen`` spans. A pedestrian whose
+    legs are hidden is seen as head and shoulders: the rows the detection does not reach
+    say nothing about who it is, the columns do (someone else beside shifts them). Equals
+    :func:`box_iou` when ``seen`` spans the whole box height. On the synthetic crowd four
+    MediaPipe tracklets of partly hidden pedestrians (50 detections, 48 of them nearest the
+    true joints of their own pedestrian, median error 0.03 box heights) have mean IoU
+    0.11-0.17 with their own boxes, under the matching threshold, and 0.29-0.38 with the
+    cut boxes; with the cut boxes every tracklet matches the pedestrian its crop was cut for
+    (with whole boxes, 2 of 27 went to a neighbour)."""
+    b = np.array(box, dtype=np.float64)
+    b[1] = max(b[1], min(seen[1], b[3]))
+    b[3] = min(b[3], max(seen[3], b[1]))
+    return box_iou(seen, b)
+
+
 def tracklet_ious(scene: SceneData, tracklet: HumanTracklet, tracks: list[ActorTrack]) -> np.ndarray:
-    """(T, J) IoU of each tracklet box with each track's projected box (0 where not projectable)."""
+    """(T, J) :func:`seen_part_iou` of each tracklet box with each track's projected box (0
+    where not projectable)."""
     out = np.zeros((len(tracklet.frames), len(tracks)))
     for j, track in enumerate(tracks):
         for i, f in enumerate(tracklet.frames):
             box = project_box(track, scene, tracklet.camera, int(f))
             if box is not None:
-                out[i, j] = box_iou(tracklet.boxes[i], box)
+                out[i, j] = seen_part_iou(tracklet.boxes[i], box)
     return out
 
 
@@ -188,8 +258,9 @@ def match_tracklets(scene: SceneData, tracklets: list[HumanTracklet], tracks: Op
                     min_iou: float = 0.2) -> dict[int, str]:
     """Assign tracklets to 3D tracks (default: the scene's human tracks).
 
-    Per camera, score[k, j] = mean over tracklet k's frames of IoU(box, projected box of
-    track j); a Hungarian assignment maximises the total score, and pairs below ``min_iou``
+    Per camera, score[k, j] = mean over tracklet k's frames of the IoU of its box with the
+    projected box of track j cut to the rows the tracklet box spans (:func:`seen_part_iou`);
+    a Hungarian assignment maximises the total score, and pairs below ``min_iou``
     are dropped. Returns {tracklet index: track id}; a track may receive one tracklet per
     camera.
     """
@@ -326,7 +397,7 @@ def keypoint_observations(scene: SceneData, track: ActorTrack, tracklets: list[H
         for i, f in enumerate(t.frames):
             f = int(f)
             box = project_box(track, scene, t.camera, f)
-            if box is None or box_iou(t.boxes[i], box) < min_frame_iou:
+            if box is None or seen_part_iou(t.boxes[i], box) < min_frame_iou:
                 continue
             kp = np.asarray(t.keypoints[i], dtype=np.float64)
             out.append(KeypointObservation(f, t.camera, cam.intrinsics, np.linalg.inv(cam.cam_to_world[f]),

@@ -178,3 +178,40 @@ def test_bench_metrics(template):
     assert m["all"]["frames"] == 3 and m["acceptance_subset"]["frames"] == 2
     assert m["acceptance_subset"]["mpjpe_cm"] == pytest.approx(7.5) and m["all"]["posed_fraction"] == pytest.approx(2 / 3)
     assert m["by_height_px"]["80-inf"]["frames"] == 1 and m["by_lidar_points"]["50-inf"]["frames"] == 1
+
+
+def test_keypoint_weight_per_estimator(template):
+    """MediaPipe's keypoints are down-weighted against the LiDAR points (FitConfig
+    source_keypoint_weights): keypoints with left and right swapped (a typical image
+    estimator error) from the side camera pull a fit at full weight away from what 20
+    LiDAR points per frame say, much less at MediaPipe's weight."""
+    poses, go, bp, centres = true_walk(template, yaw=0.0, seed=4)
+    verts = world_vertices(template, go, bp, centres)
+    points = scan(template, verts, sensor=np.array([5.5, -6.0, 0.9]), n=20)
+    J = np.stack([forward_kinematics(template.joints, template.parents, g, b)[0] for g, b in zip(go, bp)])
+    lo, hi = template.vertices[:, 1].min(), template.vertices[:, 1].max()
+    J0 = template.joints[0]
+    J = J - (J0 + np.einsum("fij,j->fi", go, np.array([0.0, (lo + hi) / 2, 0.0]) - J0))[:, None] + centres[:, None]
+    swap = np.arange(24)
+    for a, b in ((1, 2), (4, 5), (7, 8), (10, 11), (13, 14), (16, 17), (18, 19), (20, 21), (22, 23)):
+        swap[[a, b]] = [b, a]
+    K = np.array([[800.0, 0, 480], [0, 800.0, 270], [0, 0, 1]])
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]], 1)  # looking along +y at the walker
+    c2w[:3, 3] = [5.5, -6.0, 0.0]
+    w2c = np.linalg.inv(c2w)
+    conf = np.full(24, 0.9)
+    obs = []
+    for f in range(F):
+        p = J[f] @ w2c[:3, :3].T + w2c[:3, 3]
+        uv = p[:, :2] / p[:, 2:] @ K[:2, :2].T + K[:2, 2]
+        obs.append(KeypointObservation(f, 0, K, w2c, uv[swap], conf, 1.63 * 800 / p[0, 2], "mediapipe"))
+    data = TrackData(poses, np.array([0.8, 0.6, 1.63]), np.ones(F, bool), points, obs)
+    errors = {}
+    for name, weights in (("lidar only", None), ("mediapipe weight", {"mediapipe": 0.1}), ("full weight", {})):
+        d = data if weights is not None else TrackData(data.poses, data.size, data.present, data.points, [])
+        cfg = FitConfig(iterations=60) if weights is None else FitConfig(iterations=60, source_keypoint_weights=weights)
+        res = BodyFitter.from_template(template, cfg).fit(d, np.arange(F) * 0.1)
+        errors[name] = mpjpe(template, res.global_orient, res.body_pose, go, bp)
+    assert FitConfig().source_keypoint_weights["mediapipe"] == 0.1
+    assert errors["mediapipe weight"] < errors["lidar only"] + 0.01 < errors["full weight"], errors

@@ -137,3 +137,62 @@ def test_prepare_human_poses_paths(tmp_path):
     assert paths["p0"].startswith("fake: 8 observed") and paths["p1"].startswith("fake:")
     assert paths["p2"].startswith("neutral")
     assert prepare_human_poses(scene, estimator=est, min_box_height=5) == paths and est.calls == 2  # idempotent
+
+
+def test_partly_hidden_person_matches_by_the_rows_it_is_seen_in(tmp_path):
+    """A tracklet that saw only the head and shoulders of p1 (its box: the top fifth of the
+    projected box, IoU 0.2 with it) is matched to p1 and its frames kept as keypoint
+    observations; the same boxes moved onto the neighbour p0 match p0, not p1."""
+    from omnire_body.humanpose import box_iou, keypoint_observations
+
+    scene = scene_with_people(tmp_path)
+    p0, p1 = scene.tracks[-3], scene.tracks[-2]
+    frames = np.arange(8)
+
+    def head_and_shoulders(track):
+        boxes = np.stack([project_box(track, scene, 0, int(f)) for f in frames])
+        boxes[:, 3] = boxes[:, 1] + 0.18 * (boxes[:, 3] - boxes[:, 1])
+        kp = np.zeros((8, 24, 3))
+        kp[..., 2] = 0.9
+        return HumanTracklet(0, frames, boxes, np.tile(np.eye(3), (8, 1, 1)), np.tile(np.eye(3), (8, 23, 1, 1)),
+                             keypoints=kp)
+
+    seen = head_and_shoulders(p1)
+    assert max(box_iou(b, project_box(p1, scene, 0, int(f))) for b, f in zip(seen.boxes, frames)) < 0.2
+    humans = [t for t in scene.tracks if t.category == "human"]
+    assert match_tracklets(scene, [seen], humans) == {0: "p1"}
+    assert len(keypoint_observations(scene, p1, [seen])) == 8
+    assert match_tracklets(scene, [head_and_shoulders(p0)], humans) == {0: "p0"}
+
+
+def test_occluder_outlines():
+    """A walker's body outline lies inside its projected box and is narrower; a car's is
+    lower; with extent 1 the outline's extent is the projected box."""
+    from omnire.data.scene import ActorTrack
+    from omnire_body.humanpose import OCCLUDER_EXTENT, convex_hull, project_outline
+
+    assert convex_hull(np.array([[0, 0], [2, 0], [1, 1], [2, 2], [0, 2], [1, 0.5]])).tolist() == \
+        [[0, 0], [2, 0], [2, 2], [0, 2]]
+    from omnire.data.scene import CameraSequence, SceneData
+
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    cam = CameraSequence("front", 640, 480, K, c2w[None], [None], np.zeros(1))
+    pose = np.eye(4)
+    pose[:3, :3] = rot_z(np.pi / 2)
+    pose[:3, 3] = [6.0, 0.5, -0.5]
+    walker = ActorTrack("w", "Pedestrian", "human", pose[None], np.array([1.02, 0.57, 1.69]), np.ones(1, bool))
+    car = ActorTrack("c", "Car", "vehicle", pose[None], np.array([4.5, 1.8, 1.5]), np.ones(1, bool))
+    scene = SceneData("s", [cam], np.zeros(1), np.zeros(1, int), np.zeros(1, int), np.zeros(0, int), None, [walker, car])
+    for track in (walker, car):
+        box = project_box(track, scene, 0, 0)
+        full = project_outline(track, scene, 0, 0)
+        np.testing.assert_allclose([*full.min(0), *full.max(0)], box, atol=1e-9)
+        body = project_outline(track, scene, 0, 0, OCCLUDER_EXTENT[track.category])
+        assert (body.min(0) >= box[:2] - 1e-9).all() and (body.max(0) <= box[2:] + 1e-9).all()
+        if track is walker:
+            assert np.ptp(body[:, 0]) < 0.6 * (box[2] - box[0])
+            assert np.ptp(body[:, 1]) > 0.95 * (box[3] - box[1])  # full height (nearer corners: a bit more)
+        else:
+            assert body[:, 1].min() > box[1] + 0.3 * (box[3] - box[1])  # the bonnet and boot are lower

@@ -8,9 +8,11 @@ of ``margin`` box heights on every side, padded with the edge pixels where it le
 image (the person stays centred), upscaled so the crop is ``upscale_to`` pixels tall when
 it is smaller (MediaPipe's detector works at 224 px and its landmark model at 256 px, and
 the pedestrians of a driving log are often 20-60 px tall), and, with ``mask_occluders``,
-the boxes of other actors that are nearer to the camera (and of other pedestrians behind,
-outside this one's box) are filled with the crop's median colour so the single-person
-model locks onto the right person. The detections of one region over the frames form one
+other actors that are nearer to the camera (their body outlines, ``mask_shape="body"``:
+the middle column of a walker's box, the lower part of a car's; or their whole projected
+boxes, ``"box"``, which on the synthetic crowd hid half of what was visible of the people
+behind them) and the boxes of other pedestrians behind (outside this one's box) are filled
+with the crop's median colour so the single-person model locks onto the right person. The detections of one region over the frames form one
 tracklet, whose 2D boxes are the extent of the visible landmarks (the pipeline's IoU
 matching then rejects crops that caught someone else).
 
@@ -26,7 +28,7 @@ from typing import Any, Optional
 import numpy as np
 
 from omnire.data.images import image_size, read_image
-from omnire_body.humanpose import HumanTracklet, project_box
+from omnire_body.humanpose import OCCLUDER_EXTENT, HumanTracklet, project_box, project_outline
 from omnire_pose_mediapipe.ik import MP, SMPL_FROM_MP, landmarks_to_smpl
 
 TORSO = (11, 12, 23, 24)
@@ -71,13 +73,17 @@ class MediapipeEstimator:
     around the projected box, no person detector) or "detector" (MediaPipe's own detector on
     the crop first); crop margin (box heights added on each side), crop height the crop is
     upscaled to (0 = no upscaling), masking of occluding actors, minimum projected box
-    height (px at the loaded resolution), minimum landmark visibility of the torso."""
+    height (px at the loaded resolution), minimum landmark visibility of the torso.
+    ``mask_shape``: what of a nearer actor is masked, "box" (its whole projected 3D box) or
+    "body" (the outline of the part of its box its body fills, ``OCCLUDER_EXTENT``: whole
+    boxes hide most of what is visible of a pedestrian behind a walker or a car)."""
 
     name: str = "mediapipe"
     mode: str = "roi"
     margin: float = 0.3
     upscale_to: int = 256
     mask_occluders: bool = True
+    mask_shape: str = "body"
     roi_scale: float = 1.25
     min_box_height: float = 16.0
     min_visibility: float = 0.5
@@ -157,16 +163,22 @@ class MediapipeEstimator:
         w2c = np.linalg.inv(scene.cameras[camera].cam_to_world[frame])
         return float((w2c[:3, :3] @ track.poses[frame][:3, 3] + w2c[:3, 3])[2])
 
-    def _actor_boxes(self, scene, camera: int, frame: int) -> list[tuple[Any, str, float, np.ndarray]]:
-        """(track id, category, camera depth of the box centre, projected box) of every actor
-        present at ``frame`` that projects into the image."""
+    def _actor_boxes(self, scene, camera: int, frame: int) -> list[tuple[Any, str, float, np.ndarray, Any]]:
+        """(track id, category, camera depth of the box centre, projected box, body outline
+        (K, 2) pixels or None for "box" masks) of every actor present at ``frame`` that
+        projects into the image."""
         out = []
         for t in scene.tracks:
             if not t.present[frame]:
                 continue
             box = project_box(t, scene, camera, frame)
             if box is not None:
-                out.append((t.track_id, t.category, self._depth(scene, t, camera, frame), box))
+                outline = None
+                if self.mask_shape == "body":
+                    outline = project_outline(t, scene, camera, frame, OCCLUDER_EXTENT.get(t.category, (1.0, 1.0, 1.0)))
+                elif self.mask_shape != "box":
+                    raise ValueError(f"mediapipe estimator: mask_shape must be 'box' or 'body', got {self.mask_shape!r}")
+                out.append((t.track_id, t.category, self._depth(scene, t, camera, frame), box, outline))
         return out
 
     def _crop(self, image: np.ndarray, box: np.ndarray, key, depth: float, others: list, sx: float, sy: float
@@ -190,11 +202,13 @@ class MediapipeEstimator:
         if self.mask_occluders and others:
             fill = np.median(crop.reshape(-1, 3), axis=0).astype(np.uint8)
             own = np.array([x0, y0, x1, y1])
-            for tid, cat, d, ob in others:
+            for tid, cat, d, ob, outline in others:
                 if tid == key:
                     continue
                 o = ob * [sx, sy, sx, sy]
-                if d < depth:  # nearer: hides this person
+                if d < depth and outline is not None:  # nearer: its body hides this person
+                    cv2.fillPoly(crop, [np.round(outline * [sx, sy] - [c0, r0]).astype(np.int32)], fill.tolist())
+                elif d < depth:
                     self._fill(crop, o, (c0, r0), fill)
                 elif cat == "human":  # a person behind: hide the part outside this person's box
                     self._fill(crop, o, (c0, r0), fill, keep=own)

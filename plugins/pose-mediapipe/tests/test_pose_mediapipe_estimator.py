@@ -82,3 +82,28 @@ def test_keypoints_land_on_the_projected_joints(tmp_path, height_px):
     err = np.linalg.norm(kp[ok, :2] - uv[ok], axis=1) / (box[3] - box[1])
     assert np.median(err) < 0.06, err
     assert match_tracklets(scene, [tl]) == {0: "walker"}
+
+
+def test_nearer_walker_masks_its_body_not_its_box(tmp_path):
+    """A walker 1.5 m from the camera, crossing the view beside the line of sight to the one
+    6 m away: its projected box (it spans the stride) covers the far walker entirely, its
+    body (the middle column of the box) does not. Masking whole boxes blanks the far walker;
+    masking the occluder's body outline leaves it to the landmark model."""
+    scene, joints, K, w2c = rendered_person(tmp_path, 240.0)
+    from omnire_body.humanpose import project_box
+
+    pose = np.eye(4)
+    pose[:3, :3] = axis_angle_to_rotmat(np.array([0.0, 0.0, np.pi / 2]))  # heading across the view
+    pose[:3, 3] = [1.5, -0.34, 0.0]  # right of the line of sight (image right = world -y)
+    scene.tracks.append(ActorTrack("near", "Pedestrian", "human", pose[None], np.array([1.02, 0.57, 1.69]),
+                                   np.ones(1, bool)))
+    box = project_box(scene.tracks[0], scene, 0, 0)
+    near = project_box(scene.tracks[1], scene, 0, 0)
+    assert near[0] < box[0] and near[2] > box[2]  # the nearer box hides the far walker's whole width
+    assert MediapipeEstimator(mask_shape="box").estimate(scene, 0, {0: [("walker", box)]}) == []
+    (tl,) = MediapipeEstimator(mask_shape="body").estimate(scene, 0, {0: [("walker", box)]})
+    p = joints @ w2c[:3, :3].T + w2c[:3, 3]
+    uv = p[:, :2] / p[:, 2:] @ K[:2, :2].T + K[:2, 2]
+    ok = tl.keypoints[0, :, 2] >= 0.5
+    assert ok.sum() >= 8
+    assert np.median(np.linalg.norm(tl.keypoints[0, ok, :2] - uv[ok], axis=1)) / (box[3] - box[1]) < 0.06
