@@ -289,7 +289,7 @@ def aggregate(rows: list) -> dict:
 
 
 # ---------------------------------------------------------------------------------- crop policies
-CROP_POLICIES = {
+CROP_POLICIES = {  # one region size each (``retry_roi_scales`` off), then the estimator's default
     "detector, margin 0.3, upscale 256": {"mode": "detector", "margin": 0.3, "upscale_to": 256, "mask_occluders": False},
     "roi 1.1 box heights": {"mode": "roi", "roi_scale": 1.1, "upscale_to": 256, "mask_occluders": False},
     "roi 1.25": {"mode": "roi", "roi_scale": 1.25, "upscale_to": 256, "mask_occluders": False},
@@ -300,6 +300,8 @@ CROP_POLICIES = {
     "roi 1.25, mask occluder bodies": {"mode": "roi", "roi_scale": 1.25, "upscale_to": 256, "mask_occluders": True,
                                        "mask_shape": "body"},
 }
+CROP_POLICIES = {name: {**kw, "retry_roi_scales": ()} for name, kw in CROP_POLICIES.items()}
+CROP_POLICIES["default: roi 1.25, then 1.5 and 1.1 on a miss, mask occluder bodies"] = {}
 
 
 def crop_policy_metrics(scene, truth: Truth, vis: dict, spec, frame_stride: int, min_box_height: float) -> dict:

@@ -12,9 +12,11 @@ other actors that are nearer to the camera (their body outlines, ``mask_shape="b
 the middle column of a walker's box, the lower part of a car's; or their whole projected
 boxes, ``"box"``, which on the synthetic crowd hid half of what was visible of the people
 behind them) and the boxes of other pedestrians behind (outside this one's box) are filled
-with the crop's median colour so the single-person model locks onto the right person. The detections of one region over the frames form one
-tracklet, whose 2D boxes are the extent of the visible landmarks (the pipeline's IoU
-matching then rejects crops that caught someone else).
+with the crop's median colour so the single-person model locks onto the right person. A
+region where the landmark model finds no torso is tried again at the sizes in
+``retry_roi_scales``. The detections of one region over the frames form one tracklet,
+whose 2D boxes are the extent of the visible landmarks (the pipeline's IoU matching then
+rejects crops that caught someone else).
 
 World landmarks are camera-aligned (x right, y down, z away from the camera), so the IK's
 global orientation is taken as camera-frame; the small rotation between an off-centre
@@ -74,6 +76,8 @@ class MediapipeEstimator:
     the crop first); crop margin (box heights added on each side), crop height the crop is
     upscaled to (0 = no upscaling), masking of occluding actors, minimum projected box
     height (px at the loaded resolution), minimum landmark visibility of the torso.
+    ``retry_roi_scales``: in "roi" mode, the region sizes (box heights) tried in turn on a
+    crop where the landmark model found no torso at ``roi_scale``.
     ``mask_shape``: what of a nearer actor is masked, "box" (its whole projected 3D box) or
     "body" (the outline of the part of its box its body fills, ``OCCLUDER_EXTENT``: whole
     boxes hide most of what is visible of a pedestrian behind a walker or a car)."""
@@ -85,6 +89,7 @@ class MediapipeEstimator:
     mask_occluders: bool = True
     mask_shape: str = "body"
     roi_scale: float = 1.25
+    retry_roi_scales: tuple[float, ...] = (1.5, 1.1)
     min_box_height: float = 16.0
     min_visibility: float = 0.5
     joints: Optional[np.ndarray] = None
@@ -133,8 +138,13 @@ class MediapipeEstimator:
                 if image is None:
                     image = read_image(path, W, H)
                 depth = self._depth(scene, by_id.get(key), camera, f)
-                crop, origin, scale = self._crop(image, box * [sx, sy, sx, sy], key, depth, others, sx, sy)
-                det = self._detect(crop)
+                scales = (self.roi_scale, *self.retry_roi_scales) if self.mode == "roi" else (self.roi_scale,)
+                for roi_scale in scales:
+                    crop, origin, scale = self._crop(image, box * [sx, sy, sx, sy], key, depth, others, sx, sy,
+                                                     roi_scale)
+                    det = self._detect(crop)
+                    if det is not None:
+                        break
                 if det is None:
                     continue
                 uv_all, vis, world = det
@@ -181,9 +191,10 @@ class MediapipeEstimator:
                 out.append((t.track_id, t.category, self._depth(scene, t, camera, frame), box, outline))
         return out
 
-    def _crop(self, image: np.ndarray, box: np.ndarray, key, depth: float, others: list, sx: float, sy: float
-              ) -> tuple[np.ndarray, np.ndarray, float]:
-        """(crop (h, w, 3) uint8, its top-left in full-resolution pixels (2,), upscale factor)."""
+    def _crop(self, image: np.ndarray, box: np.ndarray, key, depth: float, others: list, sx: float, sy: float,
+              roi_scale: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """(crop (h, w, 3) uint8, its top-left in full-resolution pixels (2,), upscale factor);
+        in "roi" mode the landmark region is ``roi_scale`` box heights square."""
         import cv2
 
         x0, y0, x1, y1 = box
@@ -192,7 +203,7 @@ class MediapipeEstimator:
         ch = h + 2 * m
         cw = max(x1 - x0 + 2 * m, 0.6 * ch)  # MediaPipe's detector needs some context around a thin box
         if self.mode == "roi":  # a square around the region the landmark model sees, plus a little
-            ch = cw = max(self.roi_scale, 1.0) * h * 1.1
+            ch = cw = max(roi_scale, 1.0) * h * 1.1
         cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
         c0, r0 = int(np.floor(cx - cw / 2)), int(np.floor(cy - ch / 2))
         c1, r1 = int(np.ceil(cx + cw / 2)), int(np.ceil(cy + ch / 2))

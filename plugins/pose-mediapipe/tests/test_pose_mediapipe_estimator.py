@@ -107,3 +107,22 @@ def test_nearer_walker_masks_its_body_not_its_box(tmp_path):
     ok = tl.keypoints[0, :, 2] >= 0.5
     assert ok.sum() >= 8
     assert np.median(np.linalg.norm(tl.keypoints[0, ok, :2] - uv[ok], axis=1)) / (box[3] - box[1]) < 0.06
+
+
+def test_a_missed_region_is_retried_at_another_size(tmp_path):
+    """A 60 px walker whose box hint covers only its upper 60% (a misfitted 3D box): the
+    landmark model finds no torso in the region of 1.25 box heights around the hint; the
+    retry at 1.5 box heights holds the whole body and lands the keypoints on the joints."""
+    scene, joints, K, w2c = rendered_person(tmp_path, 60.0)
+    from omnire_body.humanpose import project_box
+
+    box = project_box(scene.tracks[0], scene, 0, 0)
+    h = box[3] - box[1]
+    upper = np.array([box[0], box[1], box[2], box[1] + 0.6 * h])
+    assert MediapipeEstimator(retry_roi_scales=()).estimate(scene, 0, {0: [("walker", upper)]}) == []
+    (tl,) = MediapipeEstimator().estimate(scene, 0, {0: [("walker", upper)]})
+    p = joints @ w2c[:3, :3].T + w2c[:3, 3]
+    uv = p[:, :2] / p[:, 2:] @ K[:2, :2].T + K[:2, 2]
+    ok = tl.keypoints[0, :, 2] >= 0.5
+    assert ok.sum() >= 8
+    assert np.median(np.linalg.norm(tl.keypoints[0, ok, :2] - uv[ok], axis=1)) / h < 0.06
