@@ -27,6 +27,8 @@ def test_bench_train_compares_methods(tmp_path):
         assert r["steps_done"] == 4 and len(r["curve"]) == 2  # one mid-way evaluation + the final one
         assert r["final"]["novel_view.views"] == 3 and r["final"]["peak_rss_mb"] > 0
     md = (tmp_path / "results.md").read_text()
+    assert results[0]["rasterizer"] == results[1]["rasterizer"] == run["rasterizer"]
+    assert f"Rasterizer: {run['rasterizer']} (every run)." in md
     assert "| street-fixed-boxes |" in md and "street-fixed-boxes = `streetgs --method.nodes.rigid.no-refine-boxes`" in md and "copy nearest training frame" in md and "4 steps" in md
     assert (tmp_path / "psnr_vs_time.png").stat().st_size > 1000
     # --report-only rebuilds the table and plot from results.json without training.
@@ -65,3 +67,16 @@ def test_same_step_table_when_a_time_budget_stops_methods_early():
     assert lines[-1] == "| slow | - | - | - | 21.50 | - | - | - | - | 5 | 750 |"
     # Everyone finished the same steps: no second table.
     assert _same_step_table([result("a", [500, 1000]), result("b", [500, 1000])]) == []
+
+
+def test_runs_on_different_rasterizers_are_flagged():
+    from omnire.bench.train import rasterizer_line
+
+    ok = [{"method": "a", "final": {}, "rasterizer": "cpu"}, {"method": "b", "final": {}, "rasterizer": "cpu"},
+          {"method": "broken", "exit_code": 1}]
+    assert rasterizer_line(ok) == "Rasterizer: cpu (every run)."
+    # e.g. the native build failed between two runs and ``auto`` fell back to torch
+    mixed = ok[:1] + [{"method": "b", "final": {}, "rasterizer": "torch"}, {"method": "old", "final": {}}]
+    line = rasterizer_line(mixed)
+    assert line.startswith("**Warning: the runs used different rasterizers")
+    assert "a: cpu, b: torch, old: unrecorded." in line

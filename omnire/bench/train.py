@@ -106,7 +106,20 @@ def _run_method(args: TrainBenchArgs, entry: str) -> dict:
     final = next(r for r in reversed(records) if r.get("final"))
     result["final"] = _flatten(final["eval"])
     result["steps_done"] = final["step"]
+    result["rasterizer"] = json.loads((run_dir / "run.json").read_text()).get("rasterizer")
     return result
+
+
+def rasterizer_line(results: list[dict]) -> str:
+    """One line under the table naming the rasterizer the runs used. Runs that used
+    different ones (e.g. ``auto`` fell back to the torch rasterizer because the native one
+    failed to build) are not a comparison of methods: the line says so, naming each."""
+    used = {r["method"]: r.get("rasterizer") or "unrecorded" for r in results if "final" in r}
+    kinds = sorted(set(used.values()))
+    if len(kinds) <= 1:
+        return f"Rasterizer: {kinds[0] if kinds else '-'} (every run)."
+    return ("**Warning: the runs used different rasterizers, so their speeds (and any difference the "
+            "rasterizers make) are not comparable**: " + ", ".join(f"{m}: {k}" for m, k in used.items()) + ".")
 
 
 def _flatten(ev: dict) -> dict:
@@ -152,6 +165,7 @@ def markdown_table(results: list[dict], args: TrainBenchArgs) -> str:
             _fmt(copy.get("novel_view.copy_full_psnr")), _fmt(copy.get("novel_view.copy_full_ssim"), 3),
             _fmt(copy.get("novel_view.copy_human_psnr")), _fmt(copy.get("novel_view.copy_vehicle_psnr"))])
             + " | - | - | - | - | - | - | - | - |")
+    lines += ["", rasterizer_line(results)]
     lines += _same_step_table(results)
     variants = [r for r in results if r.get("flags") or r.get("base_method", r["method"]) != r["method"]]
     if variants:
@@ -267,7 +281,11 @@ def main(argv: list[str], plugins) -> int:
         r = _run_method(args, m)
         results.append(r)
         status = "ok" if r["exit_code"] == 0 else f"FAILED: {r.get('error', '')[-300:]}"
-        console.print(f"  {m}: {status} in {r['elapsed_s']:.0f} s")
+        console.print(f"  {m}: {status} in {r['elapsed_s']:.0f} s" + (f" ({r['rasterizer']} rasterizer)" if r.get("rasterizer") else ""))
+        first = next((x["rasterizer"] for x in results if x.get("rasterizer")), None)
+        if r.get("rasterizer") and r["rasterizer"] != first:
+            console.print(f"[yellow]warning:[/] {m} ran on the {r['rasterizer']} rasterizer, an earlier run on {first}: "
+                          "not a comparison of methods (pass --method-args=\"--method.rasterizer cpu\" to fail instead)")
         atomic_write_text(args.output / "results.json", json.dumps(
             {"args": json.loads(json.dumps(dataclasses.asdict(args), default=str)), "results": results}, indent=2))
     return _report(args, results, console)
