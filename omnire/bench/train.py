@@ -282,10 +282,9 @@ def main(argv: list[str], plugins) -> int:
         results.append(r)
         status = "ok" if r["exit_code"] == 0 else f"FAILED: {r.get('error', '')[-300:]}"
         console.print(f"  {m}: {status} in {r['elapsed_s']:.0f} s" + (f" ({r['rasterizer']} rasterizer)" if r.get("rasterizer") else ""))
-        first = next((x["rasterizer"] for x in results if x.get("rasterizer")), None)
-        if r.get("rasterizer") and r["rasterizer"] != first:
-            console.print(f"[yellow]warning:[/] {m} ran on the {r['rasterizer']} rasterizer, an earlier run on {first}: "
-                          "not a comparison of methods (pass --method-args=\"--method.rasterizer cpu\" to fail instead)")
+        mixed = rasterizer_line(results)
+        if mixed.startswith("**Warning"):  # say it as soon as it happens, not only in the table
+            console.print(f"[yellow]{mixed}[/] (pass --method-args=\"--method.rasterizer cpu\" to fail instead)")
         atomic_write_text(args.output / "results.json", json.dumps(
             {"args": json.loads(json.dumps(dataclasses.asdict(args), default=str)), "results": results}, indent=2))
     return _report(args, results, console)
