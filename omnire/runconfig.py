@@ -40,6 +40,10 @@ class TrainerConfig:
     """Seed for initialisation, view sampling and densification."""
     threads: int = 0
     """torch CPU threads (0: torch's default)."""
+    retain_freed_memory: bool = True
+    """Keep memory freed between steps in the process instead of returning it to the OS
+    (glibc only; see omnire/allocator.py): a step stops page-faulting its large tensors back
+    in. Peak memory is unchanged; the process just does not shrink between steps."""
     device: str = "cpu"
     """Torch device (cpu or cuda)."""
     resume: Optional[Path] = None

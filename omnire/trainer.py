@@ -19,6 +19,7 @@ from typing import Optional
 
 import torch
 
+from omnire.allocator import retain_freed_memory
 from omnire.camera import Camera
 from omnire.config import to_dict
 from omnire.data.scene import SceneData, SceneTime, View
@@ -84,6 +85,8 @@ class Trainer:
         tc = config.trainer
         if tc.threads > 0:
             torch.set_num_threads(tc.threads)
+        if tc.retain_freed_memory and not retain_freed_memory():
+            log.info("--trainer.retain-freed-memory: not glibc; the allocator is left as it is")
         self.device = torch.device(tc.device)
         torch.manual_seed(tc.seed)
         self.argv = list(argv) if argv is not None else None
@@ -135,7 +138,7 @@ class Trainer:
             run.create()
             return run, None
         source, ckpt, state = find_checkpoint(tc.resume, map_location=self.device)
-        self._check_resume_matches(source.read_info())
+        self.check_run_matches(source.read_info())
         source.remove_temporary_files()
         log.info("resuming from %s (step %s)", ckpt, step_of(ckpt))
         if tc.run_name is not None and RunDirectory(Path(tc.output_dir) / tc.run_name).path != source.path:
@@ -145,7 +148,7 @@ class Trainer:
             return run, state
         return source, state
 
-    def _check_resume_matches(self, info: RunInfo) -> None:
+    def check_run_matches(self, info: RunInfo) -> None:
         """Refuse to continue a run with another method, method settings or data selection."""
         mine = self.config
         if mine.method_name != info.method or mine.dataparser_name != info.dataparser:

@@ -1,10 +1,13 @@
 """``omnire bench step``: where the time of one training step goes.
 
 Builds the trainer of ``omnire train <method> <dataparser>`` in memory (nothing written),
-optionally resizes the background node to ``--gaussians`` rows (seeded resampling with
-replacement of the initialised rows, optimiser state carried along) and puts the step
-counter at ``--at-step`` (SH bands and schedules as at that step; densification is not run
-during the benchmark), then times ``--steps`` steps stage by stage:
+optionally loads a trained run's checkpoint (``--checkpoint``: its Gaussians, optimiser state
+and step; the run must have the same method settings and data selection), optionally
+resizes the background node to ``--gaussians`` rows (seeded resampling with replacement of
+its rows, optimiser state carried along) and puts the step counter at ``--at-step`` (SH
+bands and schedules as at that step; densification is not run during the benchmark). The
+recorded data of every view it will use is decoded first (a training run has its images
+cached after the first pass over the views). Then it times ``--steps`` steps stage by stage:
 
 - ``nodes``: every Gaussian node's output at the view's moment (``Node.gaussians_at``),
 - ``render``: :meth:`SceneModel.render_parts` (rasterizer forward, environment),
@@ -27,6 +30,7 @@ import json
 import statistics
 import time
 from pathlib import Path
+from typing import Optional
 
 import tyro
 
@@ -51,10 +55,14 @@ class StepBenchArgs:
     """Extra method / trainer flags as one string, e.g. --method-args="--method.nodes.smpl.pose-source neutral"."""
     dataparser_args: str = "--scale 1.0"
     """Extra dataparser flags as one string."""
+    checkpoint: Optional[Path] = None
+    """A run directory (its newest checkpoint) or checkpoint file of this method on this data:
+    benchmark its trained Gaussians instead of the initialised ones."""
     gaussians: int = 0
-    """Background Gaussians to benchmark with (0: as initialised)."""
-    at_step: int = 0
-    """Training step the benchmark runs at (SH bands, learning-rate schedules)."""
+    """Background Gaussians to benchmark with (0: as initialised, or as in --checkpoint)."""
+    at_step: Optional[int] = None
+    """Training step the benchmark runs at (SH bands, learning-rate schedules; default: the
+    checkpoint's step, or 0)."""
     warmup: int = 3
     """Untimed steps per path."""
     steps: int = 20
@@ -80,6 +88,16 @@ def build_trainer(args: StepBenchArgs, plugins):
             *shlex.split(args.method_args), "--trainer.threads", str(args.threads), "--trainer.no-progress"]
     config = parse_train_args(argv, plugins)
     return Trainer(config, plugins, argv=argv, persist=False)
+
+
+def load_run_state(trainer, path: Path) -> None:
+    """Put ``trainer`` in the state of the checkpoint at ``path`` (a run directory or a
+    checkpoint file), refusing a run of another method, method settings or data selection."""
+    from omnire.rundir import find_checkpoint
+
+    source, _ckpt, state = find_checkpoint(path)
+    trainer.check_run_matches(source.read_info())
+    trainer.load_state(state)
 
 
 def resize_background(trainer, n: int, seed: int) -> None:
@@ -159,12 +177,16 @@ def run(args: StepBenchArgs, plugins) -> dict:
     if "fused" in paths and not has_fused:
         raise ConfigError(f"--paths fused: rasterizer {type(model.rasterizer).__name__} has no fused training path "
                           "(rasterize_gaussians_train); use --method.rasterizer cpu")
+    if args.checkpoint is not None:
+        load_run_state(trainer, args.checkpoint)
     if args.gaussians:
         resize_background(trainer, args.gaussians, args.seed)
-    trainer.step = trainer.recon.step = args.at_step
+    at_step = args.at_step if args.at_step is not None else trainer.step if args.checkpoint is not None else 0
+    trainer.step = trainer.recon.step = at_step
     g = torch.Generator().manual_seed(args.seed)
     views = [trainer.train_views[int(torch.randint(len(trainer.train_views), (1,), generator=g))]
              for _ in range(args.warmup + args.steps)]
+    trainer.observations.preload(views, sky=trainer.use_sky_masks)
     samples = {p: {s: [] for s in (*STAGES, "total")} for p in paths}
     cpu_total = {p: [] for p in paths}
     for i, view in enumerate(views):
@@ -179,8 +201,9 @@ def run(args: StepBenchArgs, plugins) -> dict:
     model.use_fused_training = True
     return {
         "method": args.method, "dataparser": args.dataparser, "data": str(args.data),
-        "rasterizer": type(model.rasterizer).__name__, "threads": args.threads, "at_step": args.at_step,
-        "sh_degree": trainer.recon.sh_degree(args.at_step), "gaussians": model.num_gaussians(),
+        "rasterizer": type(model.rasterizer).__name__, "threads": args.threads, "at_step": at_step,
+        "checkpoint": None if args.checkpoint is None else str(args.checkpoint),
+        "sh_degree": trainer.recon.sh_degree(at_step), "gaussians": model.num_gaussians(),
         "gaussians_by_node": {n: m.num_gaussians for n, m in model.gaussian_nodes().items()},
         "warmup": args.warmup, "steps": args.steps,
         "paths": {p: {**{k: summarize(v) for k, v in samples[p].items()}, "total_cpu": summarize(cpu_total[p])}

@@ -303,10 +303,8 @@ void sort_by_depth(std::vector<uint64_t>& items) {
   }
 }
 
-// Tile lists in front-to-back order. offsets: (ntiles+1,) int64; ids: (M,) int32.
-std::pair<at::Tensor, at::Tensor> bin_gaussians(int64_t N, const float* depth_f, const int32_t* radii,
-                                                const int32_t* rect, int tilesX, int tilesY,
-                                                int nthreads) {
+// (depth bits, index) of the drawn Gaussians (radii > 0), nearest first.
+std::vector<uint64_t> depth_order(int64_t N, const float* depth_f, const int32_t* radii) {
   std::vector<uint64_t> order;
   order.reserve(N);
   for (int64_t i = 0; i < N; ++i) {
@@ -317,6 +315,13 @@ std::pair<at::Tensor, at::Tensor> bin_gaussians(int64_t N, const float* depth_f,
     order.push_back((uint64_t(bits) << 32) | uint64_t(uint32_t(i)));
   }
   sort_by_depth(order);
+  return order;
+}
+
+// Tile lists of the Gaussians in ``order`` (low 32 bits: index), kept in that order.
+// offsets: (ntiles+1,) int64; ids: (M,) int32.
+std::pair<at::Tensor, at::Tensor> bin_ordered(const std::vector<uint64_t>& order, const int32_t* rect,
+                                              int tilesX, int tilesY, int nthreads) {
   const int64_t ntiles = int64_t(tilesX) * tilesY;
   auto offsets = at::zeros({ntiles + 1}, at::kLong);
   int64_t* off = offsets.data_ptr<int64_t>();
@@ -354,6 +359,12 @@ std::pair<at::Tensor, at::Tensor> bin_gaussians(int64_t N, const float* depth_f,
     }
   }
   return {offsets, ids};
+}
+
+// Tile lists in front-to-back order.
+std::pair<at::Tensor, at::Tensor> bin_gaussians(int64_t N, const float* depth_f, const int32_t* radii,
+                                                const int32_t* rect, int tilesX, int tilesY, int nthreads) {
+  return bin_ordered(depth_order(N, depth_f, radii), rect, tilesX, tilesY, nthreads);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -1131,32 +1142,30 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
     return {e, e, e, at::zeros({0}, at::kInt), e, e, e, at::zeros({0}, at::kLong), at::zeros({1}, at::kLong),
             at::zeros({0}, at::kInt), at::full({1}, first_bad, at::kLong), at::zeros({1}, at::kLong)};
   }
-  // compact the drawn Gaussians (in row order, so tile lists stay deterministic)
-  int64_t M = 0;
-  for (int64_t k = 0; k < N; ++k) M += radp[k] > 0;
+  // Compact the drawn Gaussians in front-to-back order (ties by row, so deterministic): each
+  // tile list then walks the records, and the backward its gradient rows, in increasing
+  // address order instead of jumping across the whole array.
+  std::vector<float> depth_all(N);
+  for (int64_t k = 0; k < N; ++k) depth_all[k] = radp[k] > 0 ? float(recp[REC * k + 6]) : 0.f;
+  std::vector<uint64_t> order = depth_order(N, depth_all.data(), radp);
+  const int64_t M = int64_t(order.size());
   auto gidx = at::empty({M}, at::kLong);
   int64_t* gi = gidx.data_ptr<int64_t>();
-  {
-    int64_t m = 0;
-    for (int64_t k = 0; k < N; ++k)
-      if (radp[k] > 0) gi[m++] = k;
-  }
   auto rec = at::empty({M, REC}, opts);
   auto col = at::empty({M, 3}, opts);
-  std::vector<int32_t> rad_c(M), rect_c(4 * M);
-  std::vector<float> depth_f(M);
+  std::vector<int32_t> rect_c(4 * M);
   S* rc = rec.data_ptr<S>();
   S* cc = col.data_ptr<S>();
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int64_t m = 0; m < M; ++m) {
-    const int64_t k = gi[m];
+    const int64_t k = int64_t(order[m] & 0xFFFFFFFFu);
+    gi[m] = k;
     for (int j = 0; j < REC; ++j) rc[REC * m + j] = recp[REC * k + j];
     for (int j = 0; j < 3; ++j) cc[3 * m + j] = colp[3 * k + j];
     for (int j = 0; j < 4; ++j) rect_c[4 * m + j] = rectp[4 * k + j];
-    rad_c[m] = radp[k];
-    depth_f[m] = float(recp[REC * k + 6]);
+    order[m] = (order[m] & ~uint64_t(0xFFFFFFFFu)) | uint64_t(uint32_t(m));  // now indexes the records
   }
-  auto [offsets, ids] = bin_gaussians(M, depth_f.data(), rad_c.data(), rect_c.data(), tilesX, tilesY, nthreads);
+  auto [offsets, ids] = bin_ordered(order, rect_c.data(), tilesX, tilesY, nthreads);
   auto acc = at::empty({H, W, 3}, opts);
   auto dn = at::empty({H, W}, opts);
   auto aa = at::empty({H, W}, opts);
