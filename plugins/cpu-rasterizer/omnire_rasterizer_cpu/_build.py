@@ -75,6 +75,14 @@ def _build() -> ModuleType:
     )
 
 
+def build_error_line(message: str) -> str:
+    """The line of a failed build's output that says what failed: the compiler's first
+    ``error:`` line when there is one (ninja's own last line only says that it stopped)."""
+    lines = [ln.strip() for ln in message.strip().splitlines() if ln.strip()]
+    errors = [ln for ln in lines if "error:" in ln]
+    return (errors or lines or [""])[0 if errors else -1][:300]
+
+
 def load_extension() -> tuple[Optional[ModuleType], str]:
     """Return ``(module, "")`` or ``(None, reason)``; builds at most once per process."""
     with _lock:
@@ -90,7 +98,6 @@ def load_extension() -> tuple[Optional[ModuleType], str]:
                 _state["module"] = _build()
                 return _state["module"], ""  # type: ignore[return-value]
             except Exception as exc:  # noqa: BLE001 - any build failure means "unavailable"
-                first = (str(exc).strip().splitlines() or [""])[-1][:300]
-                _state["error"] = f"C++ extension failed to build: {type(exc).__name__}: {first}"
+                _state["error"] = f"C++ extension failed to build: {type(exc).__name__}: {build_error_line(str(exc))}"
         log.warning("omnire cpu rasterizer unavailable: %s", _state["error"])
         return None, str(_state["error"])
