@@ -43,7 +43,8 @@ class TrainerConfig:
     retain_freed_memory: bool = True
     """Keep memory freed between steps in the process instead of returning it to the OS
     (glibc only; see omnire/allocator.py): a step stops page-faulting its large tensors back
-    in. Peak memory is unchanged; the process just does not shrink between steps."""
+    in (about 10% of a step here). The process does not shrink between steps; see the module
+    for the cost in peak memory."""
     device: str = "cpu"
     """Torch device (cpu or cuda)."""
     resume: Optional[Path] = None

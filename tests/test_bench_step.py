@@ -34,3 +34,33 @@ def test_bench_step_times_both_paths(tmp_path, capsys):
     assert "backward" in capsys.readouterr().out
     with pytest.raises(ConfigError, match="--paths"):
         main([*ARGS, "--paths", "fast", "--steps", "1", "--output", str(out)], plugins)
+
+
+def test_bench_step_times_a_trained_runs_checkpoint(tmp_path_factory, tmp_path):
+    """--checkpoint: the trained Gaussians and step of a run (not the initialised ones); a run
+    with other method settings is refused."""
+    from scene_helpers import TINY_RUN_KEY, make_tiny_run
+
+    from omnire.rundir import find_checkpoint
+
+    root = tmp_path_factory.getbasetemp() / TINY_RUN_KEY
+    run = make_tiny_run(root)
+    plugins = load_plugins()
+    main = plugins.commands.get("bench step").main
+    method_args = ("--method.rasterizer torch --method.nodes.background.max-lidar-points 3000 "
+                   "--method.nodes.background.num-far-points 300 --method.nodes.smpl.gaussians-per-person 300")
+    args = ["--dataparser", "processed", "--data", str(root / "scene"), "--dataparser-args=",
+            "--method", "omnire", "--paths", "unfused", "--warmup", "0", "--steps", "1", "--threads", "1"]
+    out = tmp_path / "step.json"
+    assert main([*args, f"--method-args={method_args}", "--checkpoint", str(run), "--output", str(out)], plugins) == 0
+    result = json.loads(out.read_text())
+    _, _, state = find_checkpoint(run)
+    trained = {k.split(".")[1]: v.shape[0] for k, v in state["model"].items()
+               if k.startswith("nodes.") and k.endswith("gaussian_params.means")}
+    assert result["checkpoint"] == str(run) and result["at_step"] == int(state["step"])
+    assert result["gaussians_by_node"] == trained
+    assert result["paths"]["unfused"]["total"]["median_ms"] > 0
+    # the same data with another method setting is not the run that was trained
+    other = method_args.replace("gaussians-per-person 300", "gaussians-per-person 400")
+    with pytest.raises(ConfigError, match="method settings"):
+        main([*args, f"--method-args={other}", "--checkpoint", str(run), "--output", str(out)], plugins)
