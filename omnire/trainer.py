@@ -85,8 +85,6 @@ class Trainer:
         tc = config.trainer
         if tc.threads > 0:
             torch.set_num_threads(tc.threads)
-        if tc.retain_freed_memory and not retain_freed_memory():
-            log.info("--trainer.retain-freed-memory: not glibc; the allocator is left as it is")
         self.device = torch.device(tc.device)
         torch.manual_seed(tc.seed)
         self.argv = list(argv) if argv is not None else None
@@ -100,6 +98,8 @@ class Trainer:
         buffer = _RecordBuffer()
         logging.getLogger("omnire").addHandler(buffer)
         logging.getLogger("omnire").setLevel(logging.INFO)
+        if tc.retain_freed_memory and not retain_freed_memory():  # logged now that the log is set up
+            log.info("--trainer.retain-freed-memory: not glibc; the allocator is left as it is")
         try:
             self.scene = scene if scene is not None else config.dataparser.setup().load()
             self.observations = Observations(self.scene, self.device)

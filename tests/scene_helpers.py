@@ -103,6 +103,10 @@ def regularization_at(node, frame, seconds=0.0, step=None):
 
 
 TINY_RUN_KEY = "omnire-tiny-run-v1"  # bump when the recipe below changes
+# method flags of the tiny run (also what a command must repeat to load it as the same run)
+TINY_RUN_METHOD_ARGS = ["--method.rasterizer", "torch", "--method.nodes.background.max-lidar-points", "3000",
+                        "--method.nodes.background.num-far-points", "300",
+                        "--method.nodes.smpl.gaussians-per-person", "300"]
 
 
 def make_tiny_run(root):
@@ -129,8 +133,6 @@ def make_tiny_run(root):
     assert synth(["urban", str(scene), "--tiny", "--num-cameras", "1"], plugins) in (0, None)
     argv = ["omnire", "processed", "--data", str(scene), "--trainer.max-steps", "2",
             "--trainer.output-dir", str(root / "runs"), "--trainer.run-name", "omnire", "--trainer.no-progress",
-            "--trainer.eval-train-views", "1", "--trainer.threads", "1", "--method.rasterizer", "torch",
-            "--method.nodes.background.max-lidar-points", "3000", "--method.nodes.background.num-far-points", "300",
-            "--method.nodes.smpl.gaussians-per-person", "300"]
+            "--trainer.eval-train-views", "1", "--trainer.threads", "1", *TINY_RUN_METHOD_ARGS]
     Trainer(parse_train_args(argv, plugins), plugins, argv=argv).train()
     return run

@@ -39,7 +39,7 @@ def test_bench_step_times_both_paths(tmp_path, capsys):
 def test_bench_step_times_a_trained_runs_checkpoint(tmp_path_factory, tmp_path):
     """--checkpoint: the trained Gaussians and step of a run (not the initialised ones); a run
     with other method settings is refused."""
-    from scene_helpers import TINY_RUN_KEY, make_tiny_run
+    from scene_helpers import TINY_RUN_KEY, TINY_RUN_METHOD_ARGS, make_tiny_run
 
     from omnire.rundir import find_checkpoint
 
@@ -47,8 +47,7 @@ def test_bench_step_times_a_trained_runs_checkpoint(tmp_path_factory, tmp_path):
     run = make_tiny_run(root)
     plugins = load_plugins()
     main = plugins.commands.get("bench step").main
-    method_args = ("--method.rasterizer torch --method.nodes.background.max-lidar-points 3000 "
-                   "--method.nodes.background.num-far-points 300 --method.nodes.smpl.gaussians-per-person 300")
+    method_args = " ".join(TINY_RUN_METHOD_ARGS)
     args = ["--dataparser", "processed", "--data", str(root / "scene"), "--dataparser-args=",
             "--method", "omnire", "--paths", "unfused", "--warmup", "0", "--steps", "1", "--threads", "1"]
     out = tmp_path / "step.json"

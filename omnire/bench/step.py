@@ -181,7 +181,7 @@ def run(args: StepBenchArgs, plugins) -> dict:
         load_run_state(trainer, args.checkpoint)
     if args.gaussians:
         resize_background(trainer, args.gaussians, args.seed)
-    at_step = args.at_step if args.at_step is not None else trainer.step if args.checkpoint is not None else 0
+    at_step = args.at_step if args.at_step is not None else trainer.step  # 0, or the checkpoint's
     trainer.step = trainer.recon.step = at_step
     g = torch.Generator().manual_seed(args.seed)
     views = [trainer.train_views[int(torch.randint(len(trainer.train_views), (1,), generator=g))]
