@@ -27,6 +27,9 @@ class LossContext:
         lidar_pixels: (P,) flat pixel indices with a LiDAR return, or None.
         lidar_depth: (P,) LiDAR depth along the camera z axis at those pixels.
         sky_mask: (H, W, 1) 1 where sky, or None.
+        sky_trusted: (H, W, 1) weights of the sky mask's pixels in the opacity loss: 0 where
+            the mask's "sky" cannot be trusted (omnire.masks.SkyMasks), 1 elsewhere; None =
+            trusted everywhere.
         scene_pixels: (H, W, 1) 0 on the recording vehicle (ego mask), 1 elsewhere; None =
             every pixel. Losses ignore the vehicle's pixels.
         step: training step.
@@ -40,6 +43,7 @@ class LossContext:
     lidar_pixels: Optional[torch.Tensor] = None
     lidar_depth: Optional[torch.Tensor] = None
     sky_mask: Optional[torch.Tensor] = None
+    sky_trusted: Optional[torch.Tensor] = None
     scene_pixels: Optional[torch.Tensor] = None
     step: int = 0
 
@@ -100,15 +104,19 @@ def lidar_inverse_depth_loss(ctx: LossContext) -> Optional[torch.Tensor]:
 
 
 def opacity_mask_loss(ctx: LossContext) -> Optional[torch.Tensor]:
-    """BCE of the rendered Gaussian opacity against the non-sky mask (sky -> 0, else 1)."""
+    """BCE of the rendered Gaussian opacity against the non-sky mask (sky -> 0, else 1), over
+    the scene's pixels where the sky mask is trusted."""
     if ctx.sky_mask is None:
         return None
     target = 1.0 - ctx.sky_mask
     a = ctx.alpha.clamp(1e-6, 1 - 1e-6)
-    if ctx.scene_pixels is None:
+    weights = ctx.scene_pixels
+    if ctx.sky_trusted is not None:
+        weights = ctx.sky_trusted if weights is None else weights * ctx.sky_trusted
+    if weights is None:
         return torch.nn.functional.binary_cross_entropy(a, target)
     bce = torch.nn.functional.binary_cross_entropy(a, target, reduction="none")
-    return (bce * ctx.scene_pixels).sum() / ctx.scene_pixels.sum().clamp_min(1.0)
+    return (bce * weights).sum() / weights.sum().clamp_min(1.0)
 
 
 BUILTIN_LOSSES = {

@@ -6,14 +6,19 @@ Both prefer masks the dataset provides (``CameraSequence.dynamic_mask_paths`` /
 - dynamic masks: the 3D boxes of the actors present at the frame, projected (convex hull of
   the 8 corners, clipped at the near plane) and z-buffered: a pixel belongs to the box its
   ray enters first, so a pedestrian behind a parked car is masked only where it is seen
-  (PandaSet 002's pedestrians are mostly behind parked cars). Coarse (boxes include some
-  background) but exact in where the actor is; occluders without a box (walls, poles) are
-  not resolved;
+  (PandaSet 002's pedestrians are mostly behind parked cars). Occluders without a box (a
+  hedge, a wall, a pole) are found with the frame's LiDAR: box pixels near a return that
+  lies in front of the box belong to no actor. Coarse (boxes include some background) but
+  exact in where the actor is; where the LiDAR has no return on a box's pixels, the box
+  stands;
 - sky masks: pixels looking above the horizon and above the top-most LiDAR return of their
   image column (LiDAR of the frame and its neighbours, columns smoothed), as the sky returns
   nothing. Limits: buildings above the LiDAR's vertical field of view (+15 deg for
   PandaSet's Pandar64) or beyond its range are taken for sky; overhanging trees and wires
-  are not resolved. It drives only the opacity loss (weight 0.05).
+  are not resolved. So beside the mask, where its "sky" is not to be trusted: columns whose
+  LiDAR returns reach the sensor's upper limit (what is seen there may go on above it), and
+  textured pixels (trees, wires, skyline edges: the open sky is smooth). The mask drives only
+  the opacity loss (weight 0.05), which skips the untrusted pixels.
 
 Masks are cached per view as (H, W, 1) float tensors.
 """
@@ -27,6 +32,7 @@ import torch.nn.functional as F
 
 from omnire.data.images import ImageCache
 from omnire.data.scene import SceneData, View
+from omnire.lidar import near_upper_limit, project_points, project_to_pixels
 
 HUMAN_CATEGORIES = frozenset({"human", "cyclist"})
 """Categories counted as humans in the human-region metrics (riders are people too)."""
@@ -113,10 +119,22 @@ def _convex_hull(points: np.ndarray) -> np.ndarray:
 
 
 class DynamicMasks:
-    """Human / vehicle masks per view: dataset masks when given, else projected boxes."""
+    """Human / vehicle masks per view: dataset masks when given, else projected boxes,
+    z-buffered against each other and against the frame's LiDAR (see :meth:`_unoccluded`).
 
-    def __init__(self, scene: SceneData, images: ImageCache, device: torch.device) -> None:
+    Args:
+        occlusion_margin: a LiDAR return this many metres in front of where a pixel's ray
+            enters its box shows an occluder (boxes are tight; the sweep and the image are
+            not taken at exactly the same moment).
+        occlusion_radius: pixels take the verdict of the nearest return on the same box's
+            pixels within this many pixels (per 480 px of image width).
+    """
+
+    def __init__(self, scene: SceneData, images: ImageCache, device: torch.device, occlusion_margin: float = 0.5,
+                 occlusion_radius: float = 6.0) -> None:
         self.scene, self.images, self.device = scene, images, device
+        self.occlusion_margin = occlusion_margin
+        self.occlusion_radius = occlusion_radius
         self._cache: dict[tuple[View, str], torch.Tensor] = {}
         self._owner: dict[View, np.ndarray] = {}
 
@@ -164,37 +182,95 @@ class DynamicMasks:
             nearer = z < depth[ys, xs]
             depth[ys[nearer], xs[nearer]] = z[nearer]
             owner[ys[nearer], xs[nearer]] = i
+        owner = self._unoccluded(view, owner, depth)
         self._owner = {view: owner}  # views are built one kind after another: keep the last
         return owner
 
+    def _unoccluded(self, view: View, owner: np.ndarray, entry: np.ndarray) -> np.ndarray:
+        """``owner`` (H, W) with -1 where the frame's LiDAR shows an occluder without a box
+        (a hedge, a wall, a pole) in front of the owning box. ``entry`` (H, W): camera depth
+        at which each pixel's ray enters its box (>= 1e12 where the centre ray misses it).
+        Each box pixel takes the verdict of the nearest LiDAR return that falls on the same
+        box's pixels, within ``occlusion_radius``; pixels with none keep their box."""
+        sweeps = self.scene.lidar
+        if sweeps is None or sweeps.points[view.frame] is None or not (owner >= 0).any():
+            return owner
+        from scipy.spatial import cKDTree
+
+        cam = self.scene.cameras[view.camera]
+        W = cam.width
+        idx, z = project_points(sweeps.points[view.frame], cam.cam_to_world[view.frame], cam.intrinsics, W,
+                                cam.height)
+        ys, xs = idx // W, idx % W
+        box = owner[ys, xs]
+        hits = (box >= 0) & (entry[ys, xs] < 1e11)
+        ys, xs, z, box = ys[hits], xs[hits], z[hits], box[hits]
+        occluding = z < entry[ys, xs] - self.occlusion_margin
+        radius = self.occlusion_radius * max(1.0, W / 480)
+        out = owner.copy()
+        for i in np.unique(box[occluding]):
+            on_box = box == i
+            py, px = np.nonzero(owner == i)
+            tree = cKDTree(np.stack([xs[on_box], ys[on_box]], 1))
+            dist, nearest = tree.query(np.stack([px, py], 1), distance_upper_bound=radius)
+            found = np.isfinite(dist)
+            hidden = np.zeros(len(px), dtype=bool)
+            hidden[found] = occluding[on_box][nearest[found]]
+            out[py[hidden], px[hidden]] = -1
+        return out
+
 
 class SkyMasks:
-    """Sky masks per view: dataset masks when given, else the LiDAR-column heuristic."""
+    """Sky masks per view: dataset masks when given, else the LiDAR-column heuristic, and
+    where that heuristic's "sky" is not trusted (:meth:`trusted`; see the module docstring).
+
+    Args:
+        neighbour_frames: LiDAR of this many frames before and after the view's frame counts.
+        column_smoothing: a column's boundary is the highest return within this fraction of
+            the image width (sparse LiDAR).
+        ceiling_margin_deg: returns within this many degrees of the LiDAR's upper limit (the
+            99.5th percentile of the elevations of returns more than 5 m away, seen from the
+            sensor origin) count as reaching it.
+        texture_threshold: mean absolute grey-level difference (central, over a window of
+            7 px per 480 px of image width) above which a "sky" pixel is textured.
+    """
 
     def __init__(self, scene: SceneData, images: ImageCache, device: torch.device, neighbour_frames: int = 2,
-                 column_smoothing: float = 0.02) -> None:
+                 column_smoothing: float = 0.02, ceiling_margin_deg: float = 3.0,
+                 texture_threshold: float = 0.03) -> None:
         self.scene, self.images, self.device = scene, images, device
         self.neighbour_frames = neighbour_frames
         self.column_smoothing = column_smoothing
-        self._cache: dict[View, Optional[torch.Tensor]] = {}
+        self.ceiling_margin_deg = ceiling_margin_deg
+        self.texture_threshold = texture_threshold
+        self._cache: dict[View, tuple[Optional[torch.Tensor], Optional[torch.Tensor]]] = {}
 
     def available(self) -> bool:
         return all(c.sky_mask_paths is not None for c in self.scene.cameras) or self.scene.lidar is not None
 
     def get(self, view: View) -> Optional[torch.Tensor]:
+        """(H, W, 1) {0, 1}: 1 where sky; None without dataset masks or LiDAR."""
+        return self._entry(view)[0]
+
+    def trusted(self, view: View) -> Optional[torch.Tensor]:
+        """(H, W, 1) {0, 1}: 0 where the mask says sky but the heuristic cannot tell; None
+        when every pixel's label is trusted (masks given by the dataset)."""
+        return self._entry(view)[1]
+
+    def _entry(self, view: View) -> tuple[Optional[torch.Tensor], Optional[torch.Tensor]]:
         if view not in self._cache:
             self._cache[view] = self._build(view)
         return self._cache[view]
 
-    def _build(self, view: View) -> Optional[torch.Tensor]:
+    def _build(self, view: View) -> tuple[Optional[torch.Tensor], Optional[torch.Tensor]]:
         cam = self.scene.cameras[view.camera]
         if cam.sky_mask_paths is not None:
-            return self.images.camera_mask(cam, cam.sky_mask_paths[view.frame]).to(self.device)
+            return self.images.camera_mask(cam, cam.sky_mask_paths[view.frame]).to(self.device), None
         if self.scene.lidar is None:
-            return None
+            return None, None
         f = view.frame
         lo, hi = max(0, f - self.neighbour_frames), min(self.scene.num_frames, f + self.neighbour_frames + 1)
-        pts = [p for p in self.scene.lidar.points[lo:hi] if p is not None]
+        frames = [g for g in range(lo, hi) if self.scene.lidar.points[g] is not None]
         W, H = cam.width, cam.height
         c2w = cam.cam_to_world[f]
         # elevation of each pixel's ray in the world (z up)
@@ -203,14 +279,35 @@ class SkyMasks:
                          (v - cam.intrinsics[1, 2]) / cam.intrinsics[1, 1], np.ones_like(u)], -1) @ c2w[:3, :3].T
         up = rays[..., 2] / np.linalg.norm(rays, axis=-1) > np.sin(np.deg2rad(1.0))
         top = np.full(W, H, dtype=np.int64)  # top-most LiDAR row per column (H = none)
-        if pts:
-            from omnire.lidar import project_points
-
-            idx, _ = project_points(np.concatenate(pts), c2w, cam.intrinsics, W, H)
-            np.minimum.at(top, idx % W, idx // W)
+        at_ceiling = np.zeros(W, dtype=bool)  # columns with a return at the LiDAR's upper limit
+        if frames:
+            points = np.concatenate([self.scene.lidar.points[g] for g in frames])
+            cols, rows, _, kept = project_to_pixels(points, c2w, cam.intrinsics, W, H)
+            np.minimum.at(top, cols, rows)
+            high = near_upper_limit(self.scene.lidar, frames, self.ceiling_margin_deg)
+            if high is not None:
+                at_ceiling[cols[high[kept]]] = True
         r = max(1, int(self.column_smoothing * W))
-        top_t = torch.from_numpy(top).float()[None, None]
         # a column's boundary is the highest return among its neighbours (sparse LiDAR)
-        smoothed = -F.max_pool1d(-top_t, 2 * r + 1, stride=1, padding=r)[0, 0].numpy()
+        smoothed = -F.max_pool1d(-torch.from_numpy(top).float()[None, None], 2 * r + 1, stride=1, padding=r)[0, 0].numpy()
         sky = up & (v < smoothed[None, :])
-        return torch.from_numpy(sky).float()[..., None].to(self.device)
+        at_ceiling = F.max_pool1d(torch.from_numpy(at_ceiling).float()[None, None], 2 * r + 1, stride=1,
+                                  padding=r)[0, 0].numpy() > 0
+        textured = self._textured(self.images.camera_image(cam, f))
+        trusted = ~(sky & (at_ceiling[None, :] | textured))
+        as_mask = lambda m: torch.from_numpy(m).float()[..., None].to(self.device)
+        return as_mask(sky), as_mask(trusted)
+
+    def _textured(self, image: torch.Tensor) -> np.ndarray:
+        """(H, W) bool: pixels near texture in (H, W, 3) ``image`` (window and spacing scale
+        with the image width, so the threshold means the same at any resolution)."""
+        H, W = image.shape[:2]
+        s = max(1, round(W / 480))
+        grey = image.float().mean(-1)[None, None]
+        grad = torch.zeros_like(grey)
+        grad[..., :, s:-s] += (grey[..., :, 2 * s:] - grey[..., :, :-2 * s]).abs()
+        grad[..., s:-s, :] += (grey[..., 2 * s:, :] - grey[..., :-2 * s, :]).abs()
+        k = 7 * s
+        mean = F.avg_pool2d(grad, k, stride=1, padding=k // 2, count_include_pad=False)[..., :H, :W]
+        grown = F.max_pool2d((mean > self.texture_threshold).float(), 5 * s, stride=1, padding=(5 * s) // 2)
+        return grown[0, 0, :H, :W].numpy() > 0

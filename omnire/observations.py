@@ -64,6 +64,11 @@ class Observations:
         """(H, W, 1) {0, 1} sky mask, or None when neither the dataset nor LiDAR gives one."""
         return self._at(("sky", view), factor, self._sky.get(view), lambda t: downscale_image(t, factor))
 
+    def sky_trusted(self, view: View, factor: int = 1) -> Optional[torch.Tensor]:
+        """(H, W, 1): 0 where the sky mask's "sky" is not to be trusted, 1 elsewhere (block
+        fractions when downscaled); None when it is trusted everywhere (see SkyMasks)."""
+        return self._at(("sky_trusted", view), factor, self._sky.trusted(view), lambda t: downscale_image(t, factor))
+
     def scene_pixels(self, view: View, factor: int = 1) -> Optional[torch.Tensor]:
         """(H, W, 1) {0, 1}: 0 where the recording vehicle itself is seen (its ego mask), 1
         elsewhere; None when the camera has no ego mask (every pixel is scene)."""
@@ -101,3 +106,4 @@ class Observations:
             self.dynamic_mask(v, "all")
             if sky:
                 self.sky_mask(v)
+                self.sky_trusted(v)

@@ -206,6 +206,7 @@ class Trainer:
             pixel_weights=pixel_weights,
             lidar_pixels=None if lidar is None else lidar[0], lidar_depth=None if lidar is None else lidar[1],
             sky_mask=obs.sky_mask(view, factor) if self.use_sky_masks else None,
+            sky_trusted=obs.sky_trusted(view, factor) if self.use_sky_masks else None,
             scene_pixels=obs.scene_pixels(view, factor),
             step=self.step,
         )
