@@ -32,7 +32,7 @@ import torch.nn.functional as F
 
 from omnire.data.images import ImageCache
 from omnire.data.scene import SceneData, View
-from omnire.lidar import near_upper_limit, project_points, project_to_pixels
+from omnire.lidar import LidarDepthTargets, near_upper_limit, project_to_pixels
 
 HUMAN_CATEGORIES = frozenset({"human", "cyclist"})
 """Categories counted as humans in the human-region metrics (riders are people too)."""
@@ -128,11 +128,14 @@ class DynamicMasks:
             not taken at exactly the same moment).
         occlusion_radius: pixels take the verdict of the nearest return on the same box's
             pixels within this many pixels (per 480 px of image width).
+        lidar: the views' projected LiDAR, when the caller already has it (the depth
+            targets of :class:`~omnire.observations.Observations`); made here otherwise.
     """
 
     def __init__(self, scene: SceneData, images: ImageCache, device: torch.device, occlusion_margin: float = 0.5,
-                 occlusion_radius: float = 6.0) -> None:
+                 occlusion_radius: float = 6.0, lidar: Optional[LidarDepthTargets] = None) -> None:
         self.scene, self.images, self.device = scene, images, device
+        self.lidar = lidar if lidar is not None else LidarDepthTargets(scene, torch.device("cpu"))
         self.occlusion_margin = occlusion_margin
         self.occlusion_radius = occlusion_radius
         self._cache: dict[tuple[View, str], torch.Tensor] = {}
@@ -192,15 +195,13 @@ class DynamicMasks:
         at which each pixel's ray enters its box (>= 1e12 where the centre ray misses it).
         Each box pixel takes the verdict of the nearest LiDAR return that falls on the same
         box's pixels, within ``occlusion_radius``; pixels with none keep their box."""
-        sweeps = self.scene.lidar
-        if sweeps is None or sweeps.points[view.frame] is None or not (owner >= 0).any():
+        projected = self.lidar.get(view) if (owner >= 0).any() else None
+        if projected is None:
             return owner
         from scipy.spatial import cKDTree
 
-        cam = self.scene.cameras[view.camera]
-        W = cam.width
-        idx, z = project_points(sweeps.points[view.frame], cam.cam_to_world[view.frame], cam.intrinsics, W,
-                                cam.height)
+        W = self.scene.cameras[view.camera].width
+        idx, z = projected[0].cpu().numpy(), projected[1].cpu().numpy().astype(np.float64)
         ys, xs = idx // W, idx % W
         box = owner[ys, xs]
         hits = (box >= 0) & (entry[ys, xs] < 1e11)

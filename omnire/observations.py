@@ -26,7 +26,7 @@ class Observations:
         self.device = device
         self.images = images if images is not None else ImageCache()
         self._lidar = LidarDepthTargets(scene, device)
-        self._dynamic = DynamicMasks(scene, self.images, device)
+        self._dynamic = DynamicMasks(scene, self.images, device, lidar=self._lidar)
         self._sky = SkyMasks(scene, self.images, device)
         self._scene_valid: Optional[dict[int, Optional[torch.Tensor]]] = None
         self._downscaled: dict[tuple, object] = {}  # (what, view or camera, factor) -> value
