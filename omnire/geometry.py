@@ -42,11 +42,11 @@ def numpy_compatible(fn: F) -> F:
 
 
 def quat_left_matrix(a: torch.Tensor) -> torch.Tensor:
-    """(4,) wxyz quaternion -> (4, 4) L with ``quat_multiply(a, b) == L @ b``: a product
-    with one fixed quaternion as a single matrix product (forward and backward)."""
+    """(..., 4) wxyz quaternions -> (..., 4, 4) L with ``quat_multiply(a, b) == L @ b``: a
+    product with one fixed quaternion as a single matrix product (forward and backward)."""
     w, x, y, z = a.unbind(-1)
-    return torch.stack([torch.stack([w, -x, -y, -z]), torch.stack([x, w, -z, y]),
-                        torch.stack([y, z, w, -x]), torch.stack([z, -y, x, w])])
+    return torch.stack([torch.stack([w, -x, -y, -z], -1), torch.stack([x, w, -z, y], -1),
+                        torch.stack([y, z, w, -x], -1), torch.stack([z, -y, x, w], -1)], -2)
 
 
 @numpy_compatible

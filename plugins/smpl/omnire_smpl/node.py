@@ -41,6 +41,7 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 from torch import nn
+import torch.nn.functional as F
 
 from omnire.api import (
     ActorNode,
@@ -293,12 +294,16 @@ class SMPLNode(ActorNode):
         lookup = torch.full((self.poses.num_instances,), -1, dtype=torch.long, device=ids.device)
         lookup[ids] = torch.arange(len(ids), device=ids.device)
         slot = lookup[instance[rows]]
-        T = blend_transforms(A, slot, self.gaussian_buffers["skin_joints"][rows],
-                             self.gaussian_buffers["skin_weights"][rows])  # (M, 3, 4)
+        # The box placement (body-to-world rotation R_box rots[:, 0], box centre t_box) is
+        # folded into the P x 24 joint transforms before blending: the skin weights of a
+        # Gaussian sum to 1, so blending then placing equals placing then blending, and no
+        # per-Gaussian copy of the box pose is needed.
         R_tot = R_box @ rots[:, 0]  # (P, 3, 3) body-to-world orientation
-        R_full = R_tot[slot] @ T[:, :, :3]
-        means = torch.einsum("mij,mj->mi", R_full, g.means) + torch.einsum("mij,mj->mi", R_tot[slot], T[:, :, 3]) \
-            + t_box[slot]
+        A_world = R_tot[:, None] @ A + F.pad(t_box[:, None, :, None], (3, 0))  # (P, 24, 3, 4)
+        T = blend_transforms(A_world, slot, self.gaussian_buffers["skin_joints"][rows],
+                             self.gaussian_buffers["skin_weights"][rows])  # (M, 3, 4)
+        R_full = T[:, :, :3]
+        means = torch.einsum("mij,mj->mi", R_full, g.means) + T[:, :, 3]
         quats = quat_multiply(rotmat_to_quat(R_full), g.quats)
         return NodeOutput(dataclasses.replace(g, means=means, quats=quats), rows, t)
 
