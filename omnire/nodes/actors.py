@@ -189,11 +189,14 @@ class _SegmentTransform(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, R, t, L, lengths):
         out_m, out_q = torch.empty_like(means), torch.empty_like(quats)
+        # contiguous transposes: a transposed 3x3 operand takes a slower matrix-product path
+        # (4x on a loaded machine), and addmm's bias broadcast is slower than a separate add
+        RT, LT = R.transpose(1, 2).contiguous(), L.transpose(1, 2).contiguous()
         a = 0
         for p, n in enumerate(lengths):
             if n:
-                torch.mm(means[a:a + n], R[p].T, out=out_m[a:a + n]).add_(t[p])  # addmm's bias broadcast is 20x slower
-                torch.mm(quats[a:a + n], L[p].T, out=out_q[a:a + n])
+                torch.mm(means[a:a + n], RT[p], out=out_m[a:a + n]).add_(t[p])
+                torch.mm(quats[a:a + n], LT[p], out=out_q[a:a + n])
             a += n
         ctx.save_for_backward(means, quats, R, L)
         ctx.lengths = lengths
