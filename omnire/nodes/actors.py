@@ -169,8 +169,8 @@ def segment_lengths(instance: torch.Tensor, ids: torch.Tensor) -> Optional[list[
     """Row counts of the instances ``ids`` (P,) when the rows ``instance`` (M,) are grouped
     by instance in the order of ``ids`` (both increasing, every row's instance in ``ids``),
     else None."""
-    if len(ids) == 0 or ids.device.type != "cpu" or not rows_grouped(instance) or not rows_grouped(ids) \
-            or (len(ids) > 1 and bool((ids[1:] == ids[:-1]).any())):
+    ids_increasing = len(ids) < 2 or bool((ids[1:] > ids[:-1]).all())
+    if len(ids) == 0 or ids.device.type != "cpu" or not ids_increasing or not rows_grouped(instance):
         return None
     lengths = torch.searchsorted(instance, ids, right=True) - torch.searchsorted(instance, ids)
     if int(lengths.sum()) != len(instance):
