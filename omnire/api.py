@@ -3,7 +3,7 @@
 Third-party plugins (node types, dataparsers, rasterizers, losses, methods, commands, pose
 estimators, scene writers) import from here only; docs/plugins.md shows each in use.
 """
-from omnire.camera import Camera, in_frustum
+from omnire.camera import CULL_SIGMAS, Camera, in_frustum, may_be_drawn
 from omnire.config import InstantiateConfig
 from omnire.data.dataparser import Dataparser, DataparserConfig, LogDataparserConfig, first_pose_world, frame_range
 from omnire.data.images import ImageCache, ImageReadError, image_size
@@ -46,6 +46,7 @@ from omnire.nodes.actors import (
     BoxActorConfig,
     BoxActorNode,
     frame_blend,
+    segment_max,
     track_displacement,
     train_frame_bracket,
     transform_instances,

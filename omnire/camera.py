@@ -125,6 +125,23 @@ class Camera:
         return d / d.norm(dim=-1, keepdim=True)
 
 
+# How far outside the image a Gaussian can still paint a pixel. Rasterizers cut splats where
+# alpha < 1/255, at most sqrt(2 ln 255) = 3.33 sigma of the (affine-projected) 2D covariance,
+# plus a 0.3 px^2 low-pass dilation (1.8 px at that cut) and half a pixel of rounding; 4 sigma
+# and 3 px leave room for the affine approximation near the borders.
+CULL_SIGMAS = 4.0
+CULL_PAD_PIXELS = 3
+
+
+def may_be_drawn(points: torch.Tensor, reach: "float | torch.Tensor", camera: Camera) -> torch.Tensor:
+    """(N,) bool: False where nothing within ``reach`` metres (a float or (N,)) of the world
+    ``points`` (N, 3) can be drawn by ``camera``: that ball lies outside its frustum widened
+    by ``CULL_PAD_PIXELS``. A Gaussian is inside the ball of its mean with reach
+    ``CULL_SIGMAS`` times its largest scale; a group of Gaussians inside a ball around its
+    centre whose reach adds that extent. Callers drop what gets False: the image is unchanged."""
+    return in_frustum(points, camera.padded(CULL_PAD_PIXELS), reach)
+
+
 def in_frustum(points: torch.Tensor, camera: Camera, margin: "float | torch.Tensor") -> torch.Tensor:
     """(N,) bool: world ``points`` (N,3) within ``margin`` metres (a float, or (N,) per
     point, e.g. to add each Gaussian's extent) of the camera's viewing frustum (the pyramid

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from omnire.camera import Camera, in_frustum
+from omnire.camera import CULL_SIGMAS, Camera, may_be_drawn
 from omnire.camerapose import CameraPoseRefinement
 from omnire.data.scene import SceneData, SceneTime
 from omnire.errors import UserError
@@ -43,21 +43,14 @@ class RenderResult:
     outputs: dict[str, NodeOutput] = dataclasses.field(default_factory=dict)
 
 
-CULL_SIGMAS = 4.0
-CULL_PAD_PIXELS = 3
-
-
 def cull_to_frustum(g: Gaussians, rows: Optional[torch.Tensor], camera: Camera
                     ) -> tuple[Gaussians, Optional[torch.Tensor]]:
     """Keep the Gaussians whose ``CULL_SIGMAS``-sigma sphere reaches the camera frustum,
-    widened by ``CULL_PAD_PIXELS``; no other can be drawn, so the image is unchanged.
-    Rasterizers cut splats where alpha < 1/255, at most sqrt(2 ln 255) = 3.33 sigma of the
-    (affine-projected) 2D covariance, plus a 0.3 px^2 low-pass dilation (1.8 px at that
-    cut) and half a pixel of rounding; 4 sigma and 3 px leave room for the affine
-    approximation near the borders. ``rows`` (the node rows of ``g``, None = all in order)
+    widened by ``CULL_PAD_PIXELS`` (:func:`omnire.camera.may_be_drawn`); no other can be
+    drawn, so the image is unchanged. ``rows`` (the node rows of ``g``, None = all in order)
     is narrowed to match."""
     reach = CULL_SIGMAS * torch.exp(g.scales.detach().max(dim=-1).values)
-    keep = torch.nonzero(in_frustum(g.means.detach(), camera.padded(CULL_PAD_PIXELS), reach)).squeeze(1)
+    keep = torch.nonzero(may_be_drawn(g.means.detach(), reach, camera)).squeeze(1)
     if len(keep) == len(g):
         return g, rows
     return g.subset(keep), (keep if rows is None else rows[keep])
@@ -209,12 +202,21 @@ class SceneModel(nn.Module):
         the method says so and a camera is given; as it sees them at its refined pose), the
         node slices of the concatenation and each node's output. Nodes named in ``hidden``
         are left out."""
-        parts = []
-        for name, node in self.gaussian_nodes().items():
-            if name in hidden:
-                continue
-            parts.append((name, node.gaussians_at(t, camera, step)))
+        parts = self.node_parts(camera, t, step, hidden)
         return self.assemble(self.seen_from(parts, camera, t) if camera is not None else parts, camera)
+
+    def node_parts(self, camera: Optional[Camera], t: SceneTime, step: Optional[int] = None,
+                   hidden: frozenset[str] = frozenset()) -> list[tuple[str, Optional[NodeOutput]]]:
+        """(name, output) of every Gaussian node not in ``hidden`` at moment ``t``. With
+        ``cull_to_view``, nodes get ``camera`` at its refined pose, the camera that sees their
+        Gaussians as they are (:meth:`seen_from` moves the Gaussians instead), so what they
+        skip as out of view is; without, no camera (every Gaussian)."""
+        seen_by = camera if self.method.cull_to_view else None
+        if seen_by is not None and self.camera_poses is not None:
+            with torch.no_grad():
+                seen_by = self.camera_poses.refined_camera(camera, t)
+        return [(name, node.gaussians_at(t, seen_by, step)) for name, node in self.gaussian_nodes().items()
+                if name not in hidden]
 
     def assemble(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Optional[Camera]
                  ) -> tuple[Optional[Gaussians], list[NodeSlice], dict[str, NodeOutput]]:
@@ -241,9 +243,7 @@ class SceneModel(nn.Module):
         step (None: the trained model, e.g. for evaluation and rendering); nodes in
         ``hidden`` are not drawn (e.g. the sky, for renders of the Gaussians alone)."""
         if self.fast_inference() or self.fused_training():
-            parts = [(name, node.gaussians_at(t, camera, step)) for name, node in self.gaussian_nodes().items()
-                     if name not in hidden]
-            return self.render_parts(parts, camera, t, sh_degree, hidden)
+            return self.render_parts(self.node_parts(camera, t, step, hidden), camera, t, sh_degree, hidden)
         g, slices, outputs = self.gather(camera, t, step, hidden)
         return self.composite(g, slices, outputs, camera, t, sh_degree, hidden)
 

@@ -131,7 +131,7 @@ def time_step(trainer, view, fused: bool) -> tuple[dict[str, float], dict[str, f
         marks.append((time.perf_counter(), time.process_time()))
 
     clock()
-    parts = [(name, node.gaussians_at(t, camera, trainer.step)) for name, node in model.gaussian_nodes().items()]
+    parts = model.node_parts(camera, t, trainer.step)
     clock()
     result = model.render_parts(parts, camera, t, recon.sh_degree(trainer.step))
     clock()

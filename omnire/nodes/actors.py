@@ -24,7 +24,7 @@ from omnire.data.scene import ActorTrack, SceneData, SceneTime
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 from omnire.geometry import axis_angle_to_rotmat, quat_left_matrix, quat_multiply, rotmat_to_quat, slerp_rotmats
 from omnire.interpolation import bracket
-from omnire.camera import Camera
+from omnire.camera import CULL_SIGMAS, Camera, may_be_drawn
 from omnire.nodes.base import GaussianNode, GaussianNodeConfig, NodeContext, NodeOutput, ParamGroup
 from omnire.pointcloud import points_in_box
 from omnire.rowsparse import gather_rows
@@ -243,6 +243,12 @@ def instance_offsets(instance: torch.Tensor, num_instances: int) -> torch.Tensor
     return torch.searchsorted(instance, torch.arange(num_instances + 1, device=instance.device))
 
 
+def segment_max(values: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """(I,) largest of ``values`` (N,) over each instance's rows, given ``offsets`` (I+1,)
+    from :func:`instance_offsets`; 0 for an instance with no rows."""
+    return torch.segment_reduce(values, "max", offsets=offsets, initial=0.0)
+
+
 def segment_rows(offsets: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
     """Increasing rows (M,) of the instances ``ids`` (P,) increasing, given ``offsets`` (I+1,)
     from :func:`instance_offsets`; O(M), independent of the other instances' rows."""
@@ -273,6 +279,10 @@ class ActorState:
     R: torch.Tensor
     t: torch.Tensor
     body: Optional[torch.Tensor] = None
+
+    def select(self, keep: torch.Tensor) -> "ActorState":
+        """The actors where ``keep`` (P,) bool is True, in the same order."""
+        return ActorState(self.ids[keep], self.R[keep], self.t[keep], None if self.body is None else self.body[keep])
 
 
 class ActorNode(GaussianNode):
@@ -324,11 +334,34 @@ class ActorNode(GaussianNode):
         moment ``t`` (for time-dependent appearance); None when ``state`` holds no actor."""
         raise NotImplementedError
 
+    def instance_reach(self, state: ActorState) -> Optional[torch.Tensor]:
+        """(P,) metres around each box centre ``state.t`` within which every Gaussian of the
+        actors ``state.ids``, drawn in ``state``, lies together with ``CULL_SIGMAS`` times its
+        largest scale; None when the node cannot bound its Gaussians (nothing is culled)."""
+        return None
+
+    def in_view(self, state: ActorState, camera: Camera) -> ActorState:
+        """``state`` without the actors of which ``camera`` can draw no Gaussian: their ball
+        (:meth:`instance_reach`) is out of its view (:func:`omnire.camera.may_be_drawn`, the
+        test the rasterizers' per-Gaussian culling passes), so the image is unchanged."""
+        with torch.no_grad():
+            reach = self.instance_reach(state)
+            if reach is None:
+                return state
+            keep = may_be_drawn(state.t.detach(), reach, camera)
+        return state if bool(keep.all()) else state.select(keep)
+
     def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
                      step: Optional[int] = None) -> Optional[NodeOutput]:
         state = self.state_at(t)
         if len(state.ids) == 0:
             return None  # absent actors cost nothing
+        if camera is not None:
+            # Present but out of view: no transform, no rasterizer rows, no optimiser step.
+            state = self.in_view(state, camera)
+            if len(state.ids) == 0:
+                g, rows = self.present_gaussians(state.ids)  # no rows; the regularisers still run
+                return NodeOutput(g, rows, t)
         return self.gaussians_for(state, t, camera, step)
 
 
@@ -376,6 +409,13 @@ class BoxActorNode(ActorNode):
     def param_groups(self) -> list[ParamGroup]:
         return super().param_groups() + self.poses.param_groups(self.config.lr_box_rotation,
                                                                  self.config.lr_box_translation)
+
+    def instance_reach(self, state: ActorState) -> Optional[torch.Tensor]:
+        """A box moves its Gaussians rigidly: the largest |box-local mean| + ``CULL_SIGMAS``
+        x largest scale over each actor's rows (0 for an actor with no rows)."""
+        p = self.gaussian_params
+        row_reach = p["means"].detach().norm(dim=-1) + CULL_SIGMAS * p["scales"].detach().amax(dim=-1).exp()
+        return segment_max(row_reach, self.instance_offsets())[state.ids]
 
 
 def box_local_lidar(scene: SceneData, track: ActorTrack, frames: np.ndarray, margin: float = 0.1) -> tuple[np.ndarray, np.ndarray]:

@@ -105,6 +105,11 @@ class DeformableNode(BoxActorNode):
             extras = {"deformed_local_means": g.means, "instance": instance}
         return NodeOutput(transform_instances(g, instance, ids, R, tr), rows, t, extras)
 
+    def instance_reach(self, state: ActorState) -> None:
+        """None: the deformation field can carry a Gaussian anywhere, so no actor is culled
+        as out of view before it is deformed (the rasterizer still culls per Gaussian)."""
+        return None
+
     def regularization(self, output: NodeOutput) -> dict[str, torch.Tensor]:
         """``deformable_box``: mean distance of the deformed Gaussians of the rendered view
         beyond their box (+ margin)."""

@@ -129,3 +129,30 @@ def test_bad_tracks(tmp_path):
     assert gaussians_at(node, 0, 0.0) is None
     g, _ = gaussians_at(node, 1, 0.0)
     assert torch.isfinite(g.means).all() and len(g) > 0
+
+
+def test_instance_reach_holds_every_gaussian(tmp_path):
+    """Each actor's ball (:meth:`BoxActorNode.instance_reach`, around the box centre) holds
+    its Gaussians' means plus 4 times their largest scales (brute force), tightly; an actor
+    whose Gaussians were all pruned gets 0."""
+    from omnire.api import CULL_SIGMAS
+    from omnire.data.scene import SceneTime
+
+    scene = make_tiny_scene(tmp_path)
+    scene.tracks.append(copy.deepcopy(scene.tracks[0]))
+    scene.tracks[1].track_id = "car-2"
+    scene.tracks[1].poses[:, 1, 3] += 3.0
+    node = RigidNode(RigidConfig(), context(scene), scene.tracks)
+    with torch.no_grad():
+        node.gaussian_params["scales"].add_(torch.randn(node.num_gaussians, 3, generator=torch.Generator().manual_seed(0)))
+    state = node.state_at(SceneTime(1, 0.0))
+    out = node.gaussians_for(state, SceneTime(1, 0.0))
+    owner = torch.searchsorted(state.ids, node.gaussian_buffers["instance"][out.rows])
+    far = (out.gaussians.means - state.t[owner]).norm(dim=-1) + CULL_SIGMAS * out.gaussians.scales.amax(dim=-1).exp()
+    per_actor = torch.zeros(len(state.ids)).scatter_reduce(0, owner, far.detach(), "amax")
+    torch.testing.assert_close(node.instance_reach(state), per_actor, rtol=1e-5, atol=1e-5)
+    keep = node.gaussian_buffers["instance"] == 1  # prune the first actor's Gaussians
+    for k in list(node.gaussian_params):
+        node.gaussian_params[k] = torch.nn.Parameter(node.gaussian_params[k].detach()[keep])
+    node.gaussian_buffers["instance"] = node.gaussian_buffers["instance"][keep]
+    assert float(node.instance_reach(state)[0]) == 0.0

@@ -44,6 +44,7 @@ from torch import nn
 import torch.nn.functional as F
 
 from omnire.api import (
+    CULL_SIGMAS,
     ActorNode,
     ActorState,
     Camera,
@@ -60,6 +61,7 @@ from omnire.api import (
     knn_scales,
     quat_multiply,
     rotmat_to_quat,
+    segment_max,
     slerp_rotmats,
     train_frame_bracket,
 )
@@ -306,6 +308,25 @@ class SMPLNode(ActorNode):
         means = torch.einsum("mij,mj->mi", R_full, g.means) + T[:, :, 3]
         quats = quat_multiply(rotmat_to_quat(R_full), g.quats)
         return NodeOutput(dataclasses.replace(g, means=means, quats=quats), rows, t)
+
+    def instance_reach(self, state: ActorState) -> torch.Tensor:
+        """Skinning moves a Gaussian at ``x`` by a blend (non-negative weights summing to 1)
+        of rigid joint transforms ``A_j x = R_j (x - J_j) + G_j`` (rest joints J, posed G,
+        body origin at the box centre), so whatever the pose it stays within
+        ``|G_j| + |x - J_j| <= (|J_0| + bones from the root to j) + (|x - J_0| + |J_j - J_0|)``
+        of the box centre; the box pose then turns it about that centre."""
+        J = self.joints[state.ids]  # (P, 24, 3) rest joints
+        root = J[:, 0]
+        chain = [torch.zeros_like(root[:, 0])]  # (P,) per joint: bone lengths from the root
+        for j in range(1, J.shape[1]):
+            p = self.parents[j]
+            chain.append(chain[p] + (J[:, j] - J[:, p]).norm(dim=-1))
+        spread = (J - root[:, None]).norm(dim=-1).amax(dim=1)  # (P,)
+        p = self.gaussian_params
+        row_root = self.joints[self.gaussian_buffers["instance"], 0]  # (N, 3)
+        row_reach = (p["means"].detach() - row_root).norm(dim=-1) + CULL_SIGMAS * p["scales"].detach().amax(dim=-1).exp()
+        rows = segment_max(row_reach, self.instance_offsets())[state.ids]
+        return root.norm(dim=-1) + torch.stack(chain, 1).amax(dim=1) + spread + rows
 
     def regularization(self, output: NodeOutput) -> dict[str, torch.Tensor]:
         """``pose_smoothness`` around the rendered (recorded) frame, for the people present there."""
