@@ -118,11 +118,14 @@ class Camera:
     def pixel_directions(self) -> torch.Tensor:
         """(H, W, 3) unit world directions of the rays through the pixel centres."""
         K = self.K
-        v, u = torch.meshgrid(torch.arange(self.height, device=K.device, dtype=K.dtype) + 0.5,
-                              torch.arange(self.width, device=K.device, dtype=K.dtype) + 0.5, indexing="ij")
-        d = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)
-        d = d @ self.cam_to_world[:3, :3].T.to(K.dtype)
-        return d / d.norm(dim=-1, keepdim=True)
+        R = self.cam_to_world[:3, :3].to(K.dtype)
+        x = (torch.arange(self.width, device=K.device, dtype=K.dtype) + 0.5 - K[0, 2]) / K[0, 0]  # (W,)
+        y = (torch.arange(self.height, device=K.device, dtype=K.dtype) + 0.5 - K[1, 2]) / K[1, 1]  # (H,)
+        # R [x, y, 1] = x R[:, 0] + y R[:, 1] + R[:, 2]: a row term plus a column term, and
+        # its length sqrt(x^2 + y^2 + 1) (R a rotation); broadcasts instead of an (H W) x 3 x 3
+        # matrix product and a norm over the last axis, both slow on the CPU
+        d = (y[:, None, None] * R[:, 1] + R[:, 2]) + x[None, :, None] * R[:, 0]
+        return d * torch.rsqrt(y[:, None, None] ** 2 + x[None, :, None] ** 2 + 1.0)
 
 
 # How far outside the image a Gaussian can still paint a pixel. Rasterizers cut splats where

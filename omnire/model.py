@@ -273,21 +273,25 @@ class SceneModel(nn.Module):
         """Render node outputs (name, output or None), e.g. actors in edited states: the
         inference path when :meth:`fast_inference`, the fused training path when
         :meth:`fused_training`, else :meth:`assemble` + :meth:`composite`. A recorded
-        camera sees them at its refined pose (:meth:`seen_from`)."""
+        camera sees them at its refined pose (:meth:`seen_from`; the fused training path hands
+        the rasterizer the move instead of moved copies)."""
+        if self.fused_training():
+            moved = self.camera_poses.world_transform(camera, t) if self.camera_poses is not None else None
+            return self._render_native(parts, camera, t, sh_degree, hidden, train=True, moved=moved)
         parts = self.seen_from(parts, camera, t)
         if self.fast_inference():
             return self._render_native(parts, camera, t, sh_degree, hidden, train=False)
-        if self.fused_training():
-            return self._render_native(parts, camera, t, sh_degree, hidden, train=True)
         g, slices, outputs = self.assemble(parts, camera)
         return self.composite(g, slices, outputs, camera, t, sh_degree, hidden)
 
     def _render_native(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Camera, t: SceneTime,
-                       sh_degree: int, hidden: frozenset[str], train: bool) -> RenderResult:
+                       sh_degree: int, hidden: frozenset[str], train: bool,
+                       moved: Optional[tuple[torch.Tensor, torch.Tensor]] = None) -> RenderResult:
         """:meth:`render_parts` through the rasterizer's own raw-Gaussian path: node outputs
         go in as parts, uncopied (``rasterize_gaussians_train`` with autograd when ``train``,
         else ``rasterize_gaussians``); the rasterizer culls to the view itself
-        (``cull_to_view``) and ``num_gaussians`` counts the rows it kept."""
+        (``cull_to_view``) and ``num_gaussians`` counts the rows it kept. ``moved`` (training
+        only): the camera-pose correction's world transform, applied by the rasterizer."""
         gs, slices, outputs, start = [], [], {}, 0
         for name, out in parts:
             if out is None:
@@ -305,7 +309,7 @@ class SceneModel(nn.Module):
         settings = RasterSettings(background=None if env else self._background)
         if train:
             out, kept = self.rasterizer.rasterize_gaussians_train(gs, camera, sh_degree, settings,
-                                                                  cull=self.method.cull_to_view)
+                                                                  cull=self.method.cull_to_view, moved=moved)
         else:
             # colours use bands up to min(sh_degree, the largest degree present), as Gaussians.cat + colors do
             degree = min(sh_degree, max(g.sh_degree for g in gs))

@@ -14,6 +14,7 @@ import torch
 
 from omnire.camera import Camera
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
+from omnire.geometry import rotmat_to_quat
 from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
 
 from ._build import load_extension
@@ -71,23 +72,33 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
     """Training path from raw Gaussians in G groups (node outputs, not concatenated).
 
     Inputs: ``meta`` (non-tensor settings, see :meth:`CpuRasterizer.rasterize_gaussians_train`),
-    ``absgrad`` (N, 2) buffer the backward adds AbsGrad into, then 6 tensors per group: means
-    (n,3), quats (n,4), log-scales (n,3), opacity logits (n,), sh0 (n,1,3), shN (n,K,3).
+    ``absgrad`` (N, 2) buffer the backward adds AbsGrad into, the move the scene is seen
+    under (rotation R (3,3), translation t (3,), R's quaternion qa (4,); all None without
+    one), then 6 tensors per group: means (n,3), quats (n,4), log-scales (n,3), opacity
+    logits (n,), sh0 (n,1,3), shN (n,K,3).
     Outputs: acc (H,W,3), depth numerator (H,W), alpha (H,W), radii (N,) int32, means2d (N,2),
     Gaussians not rejected (1,) int64 (the last three carry no gradient). Gradients reach every raw tensor of every group.
     """
 
     @staticmethod
-    def forward(ctx, meta, absgrad, *tensors):
+    def forward(ctx, meta, absgrad, R, t, qa, *tensors):
         sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads = meta
         G = len(tensors) // 6
         groups = [list(tensors[k::6]) for k in range(6)]
+        moved = torch.zeros(0, dtype=torch.float64)
+        if R is not None:  # x -> R x + t: the kernel sees it through the composed view matrix
+            moved = torch.cat([R.detach().reshape(9), t.detach(), qa.detach()]).to(torch.float64)
+            move = torch.eye(4, dtype=torch.float64)
+            move[:3, :3], move[:3, 3] = R.detach(), t.detach()
+            viewmat = viewmat @ move
+            ctx.move_rotation = R.detach()
+        ctx.moved = moved
         (acc, dn, alpha, radii, means2d, rec, col, gidx, offsets, ids, bad, kept) = _ext().forward_train(
-            *groups, sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads)
+            *groups, sh_degree, center, moved, viewmat, K, width, height, near, far, eps2d, cull, nthreads)
         if int(bad[0]) >= 0:
             raise RasterInputError(f"Gaussian row {int(bad[0])} (of the {G} concatenated parts) has non-finite "
                                    "parameters or colour; refusing to render a NaN image")
-        ctx.meta = meta
+        ctx.meta = (sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads)
         ctx.absgrad = absgrad
         ctx.num_groups = G
         ctx.save_for_backward(*tensors, rec, col, gidx, offsets, ids, acc, dn, alpha)
@@ -107,11 +118,19 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
             return torch.zeros_like(like) if g is None else g.contiguous().to(like.dtype)
 
         grads = _ext().backward_train(
-            *groups, sh_degree, center, viewmat, K, width, height, near, far, eps2d,
+            *groups, sh_degree, center, ctx.moved, viewmat, K, width, height, near, far, eps2d,
             rec, col, gidx, offsets, ids, acc, dn, alpha,
             grad_or_zeros(g_acc, acc), grad_or_zeros(g_dn, dn), grad_or_zeros(g_alpha, alpha), nthreads)
+        g_R = g_t = g_qa = None
+        if ctx.moved.numel():
+            # sums over the rows in the unmoved frame: the moved means' gradient is R g_mean
+            sums = grads.pop()
+            R = ctx.move_rotation.to(torch.float64)
+            g_R = (R @ sums[:9].reshape(3, 3)).to(ctx.move_rotation.dtype)
+            g_t = (R @ sums[9:12]).to(ctx.move_rotation.dtype)
+            g_qa = sums[12:].to(ctx.move_rotation.dtype)
         ctx.absgrad.add_(grads[-1].to(ctx.absgrad.dtype))
-        return (None, None, *grads[:-1])
+        return (None, None, g_R, g_t, g_qa, *grads[:-1])
 
 
 class CpuRasterizer:
@@ -205,7 +224,8 @@ class CpuRasterizer:
                             absgrad2d=torch.zeros(len(radii), 2)), int(kept[0])
 
     def rasterize_gaussians_train(self, parts: list[Gaussians], camera: Camera, sh_degree: int,
-                                  settings: RasterSettings = RasterSettings(), cull: bool = True
+                                  settings: RasterSettings = RasterSettings(), cull: bool = True,
+                                  moved: Optional[tuple[torch.Tensor, torch.Tensor]] = None
                                   ) -> tuple[RenderOutput, int]:
         """Training rendering of raw Gaussians in parts (node outputs, not concatenated), with
         gradients to every raw tensor of every part: activations (exp of log-scales, sigmoid
@@ -216,7 +236,13 @@ class CpuRasterizer:
         from :meth:`Gaussians.colors`, up to float rounding; ``radii`` and ``absgrad2d`` (N,)
         index the parts in order (rejected rows: radius 0, no AbsGrad). float64 parts run in
         double precision (gradient checks). Returns the output and the number of Gaussians
-        not rejected."""
+        not rejected.
+
+        ``moved`` = (R (3,3) rotation, t (3,)): draw the parts as if moved by x -> R x + t
+        first (rotations composed as ``quat(R) q``, as :meth:`Gaussians.transform`; a camera-
+        pose correction, omnire/camerapose.py) without a moved copy of them: the view matrix
+        is composed with the move, and R and t get their gradients (through R's quaternion
+        too) from the rows' own."""
         if not parts:
             raise RasterInputError("rasterize_gaussians_train: no parts")
         if camera.device.type != "cpu" or any(p.means.device.type != "cpu" for p in parts):
@@ -241,7 +267,14 @@ class CpuRasterizer:
                 camera.K.detach().to(torch.float64).contiguous(), int(camera.width), int(camera.height),
                 float(settings.near), float(settings.far), float(settings.eps2d), bool(cull),
                 int(self.num_threads or torch.get_num_threads()))
-        acc, dn, alpha, radii, means2d, kept = _RasterizeGaussiansFn.apply(meta, absgrad, *tensors)
+        R = t = qa = None
+        if moved is not None:
+            R, t = moved
+            if R.shape != (3, 3) or t.shape != (3,):
+                raise RasterInputError(f"moved: rotation {tuple(R.shape)} and translation {tuple(t.shape)}, "
+                                       "expected (3, 3) and (3,)")
+            qa = rotmat_to_quat(R)
+        acc, dn, alpha, radii, means2d, kept = _RasterizeGaussiansFn.apply(meta, absgrad, R, t, qa, *tensors)
         rgb = acc
         if settings.background is not None:
             rgb = acc + (1.0 - alpha)[..., None] * settings.background.to(dtype)

@@ -922,7 +922,9 @@ std::vector<at::Tensor> forward_gaussians_impl(const std::vector<at::Tensor>& me
     const float *sp = scales[g].data_ptr<float>(), *op = opacities[g].data_ptr<float>();
     const float *c0p = sh0[g].data_ptr<float>(), *cNp = shN[g].data_ptr<float>();
     int64_t bad = std::numeric_limits<int64_t>::max();
-#pragma omp parallel for schedule(static) num_threads(nthreads) reduction(min : bad) reduction(+ : rejected)
+    // Dynamic chunks: a culled row costs a few ns, a drawn one a projection and its SH; each
+    // row writes only its own outputs, so the schedule changes no result.
+#pragma omp parallel for schedule(dynamic, 1024) num_threads(nthreads) reduction(min : bad) reduction(+ : rejected)
     for (int64_t i = 0; i < n; ++i) {
       const int64_t k = off + i;
       bool finite = std::isfinite(op[i]);
@@ -1028,12 +1030,61 @@ inline void sh_basis(int degree, const S d[3], S b[16]) {
   b[14] = S(SHD_C3[5]) * z * (xx - yy); b[15] = S(SHD_C3[6]) * x * (xx - 3 * yy);
 }
 
-// Unit view direction from the camera centre to ``mean``, normalised as Gaussians.colors does.
+// The scene seen moved by x -> R x + t before it is drawn (a camera-pose correction applied
+// to the Gaussians, omnire/camerapose.py; rotations compose as q' = qa q with qa the
+// quaternion of R). The caller composes the view matrix with the move, so projection needs
+// nothing more; the kernel moves the SH view directions the same way, and the training
+// backward returns the gradients of R, t and qa from the rows' own gradients (the moved
+// means' gradient is R times the unmoved one's), so no moved copy of the Gaussians exists.
+struct Moved {
+  bool on = false;
+  double R[9], t[3], qa[4];
+};
+
+// ``moved``: (16,) float64 [R row-major (9), t (3), qa (4)], or an empty tensor (no move).
+Moved make_moved(const at::Tensor& moved) {
+  Moved mv;
+  if (moved.numel() == 0) return mv;
+  TORCH_CHECK(moved.numel() == 16, "moved: expected 16 values [R (9), t (3), qa (4)], got ", moved.numel());
+  auto m = moved.detach().to(at::kCPU, at::kDouble).contiguous();
+  const double* v = m.data_ptr<double>();
+  mv.on = true;
+  for (int i = 0; i < 9; ++i) mv.R[i] = v[i];
+  for (int i = 0; i < 3; ++i) mv.t[i] = v[9 + i];
+  for (int i = 0; i < 4; ++i) mv.qa[i] = v[12 + i];
+  return mv;
+}
+
+// Unit view direction from the camera centre to ``mean`` (moved by ``mv`` when on),
+// normalised as Gaussians.colors does.
 template <typename S>
-inline void view_dir(const S* mean, const double center[3], S d[3]) {
-  for (int j = 0; j < 3; ++j) d[j] = S(mean[j] - S(center[j]));
+inline void view_dir(const S* mean, const double center[3], const Moved& mv, S d[3]) {
+  if (mv.on) {
+    for (int j = 0; j < 3; ++j)
+      d[j] = S(mv.R[3 * j] * double(mean[0]) + mv.R[3 * j + 1] * double(mean[1]) + mv.R[3 * j + 2] * double(mean[2]) +
+               mv.t[j] - center[j]);
+  } else {
+    for (int j = 0; j < 3; ++j) d[j] = S(mean[j] - S(center[j]));
+  }
   const S nrm = std::max(S(std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])), S(1e-8));
   for (int j = 0; j < 3; ++j) d[j] = d[j] / nrm;
+}
+
+// Gradient of qa from one row: q' = qa q, so dL/dq' = L(qa) g (g = dL/dq, L(qa) the
+// orthogonal left-multiplication matrix of the unit qa) and dL/dqa = Rm(q)^T dL/dq' (Rm(q)
+// the right-multiplication matrix: qa q = Rm(q) qa). Quaternions (w, x, y, z).
+inline void qa_gradient(const double qa[4], const double q[4], const double g[4], double out[4]) {
+  const double a0 = qa[0], a1 = qa[1], a2 = qa[2], a3 = qa[3];
+  const double p[4] = {a0 * g[0] - a1 * g[1] - a2 * g[2] - a3 * g[3],
+                       a1 * g[0] + a0 * g[1] - a3 * g[2] + a2 * g[3],
+                       a2 * g[0] + a3 * g[1] + a0 * g[2] - a1 * g[3],
+                       a3 * g[0] - a2 * g[1] + a1 * g[2] + a0 * g[3]};
+  const double b0 = q[0], b1 = q[1], b2 = q[2], b3 = q[3];
+  // Rm(q) = [[b0,-b1,-b2,-b3],[b1,b0,b3,-b2],[b2,-b3,b0,b1],[b3,b2,-b1,b0]]; out = Rm^T p
+  out[0] = b0 * p[0] + b1 * p[1] + b2 * p[2] + b3 * p[3];
+  out[1] = -b1 * p[0] + b0 * p[1] - b3 * p[2] + b2 * p[3];
+  out[2] = -b2 * p[0] + b3 * p[1] + b0 * p[2] - b1 * p[3];
+  out[3] = -b3 * p[0] - b2 * p[1] + b1 * p[2] + b0 * p[3];
 }
 
 template <typename S>
@@ -1072,8 +1123,8 @@ std::vector<RawGroup<S>> raw_groups(const std::vector<at::Tensor>& means, const 
 
 template <typename S>
 std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& groups, int64_t N, const double center[3],
-                                           const Camera& cam, double near, double far, double eps2d, bool cull,
-                                           at::ScalarType st, int nthreads) {
+                                           const Moved& mv, const Camera& cam, double near, double far, double eps2d,
+                                           bool cull, at::ScalarType st, int nthreads) {
   const int W = cam.W, H = cam.H;
   const int tilesX = (W + TILE - 1) / TILE, tilesY = (H + TILE - 1) / TILE;
   auto opts = at::TensorOptions().dtype(st);
@@ -1092,7 +1143,8 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
   for (const RawGroup<S>& G : groups) {
     int64_t bad = std::numeric_limits<int64_t>::max();
     int64_t rej = 0;
-#pragma omp parallel for schedule(static) num_threads(nthreads) reduction(min : bad) reduction(+ : rej)
+    // Dynamic chunks of rows, as in forward_gaussians_impl (no result depends on them).
+#pragma omp parallel for schedule(dynamic, 1024) num_threads(nthreads) reduction(min : bad) reduction(+ : rej)
     for (int64_t i = 0; i < G.n; ++i) {
       const int64_t k = G.start + i;
       const S *mp = G.means + 3 * i, *qp = G.quats + 4 * i, *sp = G.scales + 3 * i;
@@ -1126,7 +1178,7 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       const int y1 = int(std::min<double>(tilesY, std::max(0.0, std::ceil((my + r) / TILE))));
       if (x0 >= x1 || y0 >= y1 || !(od > 0.0)) continue;
       S d[3], b[16];
-      view_dir(mp, center, d);
+      view_dir(mp, center, mv, d);
       sh_basis(G.deg, d, b);
       S* col = colp + 3 * k;
       const int nb = (G.deg + 1) * (G.deg + 1);
@@ -1195,7 +1247,8 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
 
 template <typename S>
 std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& groups, int64_t N,
-                                            const double center[3], const Camera& cam, double near, double far,
+                                            const double center[3], const Moved& mv, const Camera& cam,
+                                            double near, double far,
                                             double eps2d, const at::Tensor& rec, const at::Tensor& col,
                                             const at::Tensor& gidx, const at::Tensor& offsets, const at::Tensor& ids,
                                             const at::Tensor& acc, const at::Tensor& dn, const at::Tensor& aa,
@@ -1245,10 +1298,19 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
   std::vector<int64_t> slot(N, -1);
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int64_t m = 0; m < M; ++m) slot[gi[m]] = m;  // gi is a permutation: no two writes collide
+  // Gradients of the move (Moved): per chunk of rows [sum g_mean x^T (9), sum g_mean (3),
+  // sum dL/dqa (4)], summed over the chunks in order afterwards, so the result does not
+  // depend on which thread took which chunk.
+  constexpr int64_t CHUNK = 1024;
+  std::vector<int64_t> chunk_start(NG + 1, 0);
+  for (size_t g = 0; g < NG; ++g) chunk_start[g + 1] = chunk_start[g] + (groups[g].n + CHUNK - 1) / CHUNK;
+  std::vector<double> move_sums(mv.on ? 16 * chunk_start[NG] : 0, 0.0);
   for (size_t g = 0; g < NG; ++g) {
     const RawGroup<S>& G = groups[g];
-#pragma omp parallel for schedule(static) num_threads(nthreads)
-    for (int64_t i = 0; i < G.n; ++i) {
+    // Dynamic chunks of rows, as in forward_gaussians_impl (no result depends on them).
+#pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
+    for (int64_t c = 0; c < (G.n + CHUNK - 1) / CHUNK; ++c)
+    for (int64_t i = c * CHUNK; i < std::min(G.n, (c + 1) * CHUNK); ++i) {
       const int64_t k = G.start + i;
       const int64_t m = slot[k];
       // Records are in depth order, rows in row order: fetch a later row's sums ahead, the
@@ -1287,7 +1349,18 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
       const double o = double(sigmoid_of(G.opac[i]));
       go[g][i] = S(s[G_OP] * o * (1.0 - o));
       S d[3], b[16];
-      view_dir(mp, center, d);  // the detached mean: no gradient through the direction
+      if (mv.on) {
+        double* ms = move_sums.data() + 16 * (chunk_start[g] + c);
+        const double q[4] = {double(qp[0]), double(qp[1]), double(qp[2]), double(qp[3])};
+        double gqa[4];
+        qa_gradient(mv.qa, q, gquat, gqa);
+        for (int r = 0; r < 3; ++r) {
+          for (int j = 0; j < 3; ++j) ms[3 * r + j] += gmean[r] * double(mp[j]);
+          ms[9 + r] += gmean[r];
+        }
+        for (int j = 0; j < 4; ++j) ms[12 + j] += gqa[j];
+      }
+      view_dir(mp, center, mv, d);  // the detached mean: no gradient through the direction
       sh_basis(G.deg, d, b);     // bands above deg are 0: their coefficients get 0
       for (int c = 0; c < 3; ++c) {
         // colour clamped at 0: no gradient (clamp_min's)
@@ -1300,6 +1373,13 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
     }
   }
   out.push_back(absgrad);
+  if (mv.on) {  // [sum_rows g_mean x^T (3x3 row-major), sum_rows g_mean (3), dL/dqa (4)], unmoved frame
+    auto sums = at::zeros({16}, at::kDouble);
+    double* sp = sums.data_ptr<double>();
+    for (int64_t c = 0; c < chunk_start[NG]; ++c)
+      for (int j = 0; j < 16; ++j) sp[j] += move_sums[16 * c + j];
+    out.push_back(sums);
+  }
   return out;
 }
 
@@ -1384,6 +1464,7 @@ std::vector<at::Tensor> raster_backward(at::Tensor means, at::Tensor quats, at::
 // contiguous. Returns [acc (H,W,3), depth numerator (H,W), alpha (H,W), radii (N,) int32,
 // means2d (N,2), records (M,REC), colours (M,3), drawn rows (M,) int64, tile offsets, tile ids,
 // first non-finite row (1,) or -1 (then nothing else is computed), Gaussians not culled (1,)].
+// ``moved``: see Moved; ``viewmat`` is then the recorded camera's composed with the move.
 static void check_groups(const std::vector<at::Tensor>& means, const std::vector<at::Tensor>& quats,
                          const std::vector<at::Tensor>& scales, const std::vector<at::Tensor>& opac,
                          const std::vector<at::Tensor>& sh0, const std::vector<at::Tensor>& shN, at::ScalarType st) {
@@ -1408,9 +1489,9 @@ static void check_groups(const std::vector<at::Tensor>& means, const std::vector
 std::vector<at::Tensor> raster_forward_train(std::vector<at::Tensor> means, std::vector<at::Tensor> quats,
                                              std::vector<at::Tensor> scales, std::vector<at::Tensor> opac,
                                              std::vector<at::Tensor> sh0, std::vector<at::Tensor> shN,
-                                             int64_t sh_degree, at::Tensor center, at::Tensor viewmat, at::Tensor K,
-                                             int64_t width, int64_t height, double near, double far, double eps2d,
-                                             bool cull, int64_t nthreads) {
+                                             int64_t sh_degree, at::Tensor center, at::Tensor moved,
+                                             at::Tensor viewmat, at::Tensor K, int64_t width, int64_t height,
+                                             double near, double far, double eps2d, bool cull, int64_t nthreads) {
   TORCH_CHECK(!means.empty(), "at least one group");
   const auto st = means[0].scalar_type();
   TORCH_CHECK(st == at::kFloat || st == at::kDouble, "float32 or float64 Gaussians");
@@ -1423,19 +1504,19 @@ std::vector<at::Tensor> raster_forward_train(std::vector<at::Tensor> means, std:
   const int nt = clamp_threads(nthreads);
   if (st == at::kFloat)
     return forward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
-                                     cam, near, far, eps2d, cull, st, nt);
+                                     make_moved(moved), cam, near, far, eps2d, cull, st, nt);
   return forward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
-                                    cam, near, far, eps2d, cull, st, nt);
+                                    make_moved(moved), cam, near, far, eps2d, cull, st, nt);
 }
 
 // Returns per group [g_means, g_quats, g_log_scales, g_opacity_logits, g_sh0, g_shN] (the
-// groups' shapes), then absgrad2d (N,2).
+// groups' shapes), then absgrad2d (N,2), then with a move (see Moved) its sums (16,) float64.
 std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std::vector<at::Tensor> quats,
                                               std::vector<at::Tensor> scales, std::vector<at::Tensor> opac,
                                               std::vector<at::Tensor> sh0, std::vector<at::Tensor> shN,
-                                              int64_t sh_degree, at::Tensor center, at::Tensor viewmat, at::Tensor K,
-                                              int64_t width, int64_t height, double near, double far, double eps2d,
-                                              at::Tensor rec, at::Tensor col, at::Tensor gidx, at::Tensor offsets,
+                                              int64_t sh_degree, at::Tensor center, at::Tensor moved,
+                                              at::Tensor viewmat, at::Tensor K, int64_t width, int64_t height,
+                                              double near, double far, double eps2d, at::Tensor rec, at::Tensor col, at::Tensor gidx, at::Tensor offsets,
                                               at::Tensor ids, at::Tensor acc, at::Tensor dn, at::Tensor aa,
                                               at::Tensor g_acc, at::Tensor g_dn, at::Tensor g_a, int64_t nthreads) {
   const auto st = means[0].scalar_type();
@@ -1451,10 +1532,10 @@ std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std
   const int nt = clamp_threads(nthreads);
   if (st == at::kFloat)
     return backward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
-                                      cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
+                                      make_moved(moved), cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
                                       g_a, st, nt);
   return backward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
-                                     cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
+                                     make_moved(moved), cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
                                      g_a, st, nt);
 }
 
