@@ -207,16 +207,23 @@ class SceneModel(nn.Module):
 
     def node_parts(self, camera: Optional[Camera], t: SceneTime, step: Optional[int] = None,
                    hidden: frozenset[str] = frozenset()) -> list[tuple[str, Optional[NodeOutput]]]:
-        """(name, output) of every Gaussian node not in ``hidden`` at moment ``t``. With
-        ``cull_to_view``, nodes get ``camera`` at its refined pose, the camera that sees their
-        Gaussians as they are (:meth:`seen_from` moves the Gaussians instead), so what they
-        skip as out of view is; without, no camera (every Gaussian)."""
-        seen_by = camera if self.method.cull_to_view else None
-        if seen_by is not None and self.camera_poses is not None:
-            with torch.no_grad():
-                seen_by = self.camera_poses.refined_camera(camera, t)
+        """(name, output) of every Gaussian node not in ``hidden`` at moment ``t``, each told
+        :meth:`node_camera`."""
+        seen_by = self.node_camera(camera, t)
         return [(name, node.gaussians_at(t, seen_by, step)) for name, node in self.gaussian_nodes().items()
                 if name not in hidden]
+
+    def node_camera(self, camera: Optional[Camera], t: SceneTime) -> Optional[Camera]:
+        """The camera to hand the nodes when ``camera`` renders moment ``t``: with
+        ``cull_to_view``, ``camera`` at its refined pose, the camera that sees their Gaussians
+        as they are (:meth:`seen_from` moves the Gaussians instead), so what they skip as out
+        of view is; without, None (every Gaussian)."""
+        if camera is None or not self.method.cull_to_view:
+            return None
+        if self.camera_poses is None:
+            return camera
+        with torch.no_grad():
+            return self.camera_poses.refined_camera(camera, t)
 
     def assemble(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Optional[Camera]
                  ) -> tuple[Optional[Gaussians], list[NodeSlice], dict[str, NodeOutput]]:

@@ -55,7 +55,6 @@ def test_actors_out_of_view_are_skipped_and_the_images_unchanged(tiny_scene, tmp
             model.camera_poses.delta.zero_()
             model.camera_poses.delta[:, 1] = yaw
         for view in trainer.train_views:
-            rows = {}
             res = {}
             for cull in (True, False):
                 cfg.cull_to_view = cull

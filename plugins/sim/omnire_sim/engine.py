@@ -537,6 +537,7 @@ class Simulation:
         """(name, NodeOutput or None) of everything drawn at scene moment ``time``.
         ``only``: draw only these actors (track ids / insert ids), no background or sky."""
         t = time.seconds - float(self.recon.scene.frame_timestamps[0])
+        camera = self.recon.model.node_camera(camera, time)  # what the nodes may skip as unseen
         out = []
         for name, node in self.recon.model.gaussian_nodes().items():
             if name in hidden:
