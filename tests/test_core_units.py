@@ -140,3 +140,34 @@ def test_lidar_projection_brute_force():
             k = v * 40 + u
             best[k] = min(best.get(k, np.inf), p[2])
     assert dict(zip(idx.tolist(), z.tolist())) == pytest.approx(best)
+
+
+def test_background_init_drops_the_recording_vehicles_own_lidar_returns(tmp_path):
+    """Returns within ``ego_clearance`` of one of their frame's cameras (the vehicle's roof and
+    camera mounts) seed no background Gaussian; every other point is kept (brute force)."""
+    import numpy as np
+
+    from scene_helpers import make_tiny_scene
+    from omnire.nodes.background import lidar_points_for_init
+
+    scene = make_tiny_scene(tmp_path)
+    rng = np.random.default_rng(1)
+    frames = [f for f in scene.train_frames if scene.lidar.points[int(f)] is not None]
+    scene_pts = {int(f): scene.lidar.points[int(f)].copy() for f in frames}
+    for f in frames:  # returns off the vehicle: within 0.2-1.2 m of the frame's cameras
+        centres = np.stack([c.cam_to_world[int(f), :3, 3] for c in scene.cameras])
+        d = rng.normal(size=(40, 3))
+        d *= rng.uniform(0.2, 1.2, (40, 1)) / np.linalg.norm(d, axis=1, keepdims=True)
+        own = centres[rng.integers(0, len(centres), 40)] + d
+        scene.lidar.points[int(f)] = np.concatenate([scene_pts[int(f)], own]).astype(np.float32)
+    kept = lidar_points_for_init(scene, np.array(frames), [], ego_clearance=1.5)
+    expected = []
+    for f in frames:
+        pts = scene.lidar.points[int(f)]
+        centres = np.stack([c.cam_to_world[int(f), :3, 3] for c in scene.cameras])
+        far = np.array([min(np.linalg.norm(p - c) for c in centres) >= 1.5 for p in pts])
+        expected.append(pts[far])
+    np.testing.assert_array_equal(kept, np.concatenate(expected))
+    assert len(kept) == sum(len(p) for p in scene_pts.values())  # the scene's own points all stay
+    everything = lidar_points_for_init(scene, np.array(frames), [], ego_clearance=0.0)
+    assert len(everything) == len(kept) + 40 * len(frames)

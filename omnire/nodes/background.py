@@ -32,11 +32,17 @@ class BackgroundConfig(GaussianNodeConfig):
     """Random points in a far shell (1-3x the scene radius) for content beyond LiDAR."""
     num_random_points_without_lidar: int = 50_000
     """Points scattered in the camera frusta when the scene has no LiDAR."""
+    ego_clearance: float = 1.5
+    """LiDAR returns closer than this (m) to one of their frame's cameras are the recording
+    vehicle itself (roof, mounts, camera housings) and seed no Gaussian (0: keep them)."""
 
 
-def lidar_points_for_init(scene, frames: np.ndarray, excluded_tracks: list) -> np.ndarray:
+def lidar_points_for_init(scene, frames: np.ndarray, excluded_tracks: list, ego_clearance: float = 1.5) -> np.ndarray:
     """(N,3) LiDAR of ``frames`` in the world, without points inside excluded tracks' boxes
-    at that frame (those actors are modelled by their own nodes)."""
+    at that frame (those actors are modelled by their own nodes) and without the recording
+    vehicle's returns: points closer than ``ego_clearance`` metres to one of the frame's
+    cameras. Those sit where the cameras of other frames pass, so a Gaussian grown from one
+    is seen by no training view that could correct it and fills a held-out view close to it."""
     if scene.lidar is None:
         return np.zeros((0, 3))
     chunks = []
@@ -48,6 +54,12 @@ def lidar_points_for_init(scene, frames: np.ndarray, excluded_tracks: list) -> n
         for tr in excluded_tracks:
             if tr.present[int(f)]:
                 keep &= ~points_in_box(pts, tr.poses[int(f)], tr.size, margin=0.1)
+        if ego_clearance > 0 and len(pts):
+            centres = np.stack([c.cam_to_world[int(f), :3, 3] for c in scene.cameras])  # (C, 3)
+            centres = centres[np.isfinite(centres).all(axis=1)]
+            if len(centres):
+                nearest = np.linalg.norm(pts[:, None, :] - centres[None], axis=-1).min(axis=1)  # (n,)
+                keep &= nearest >= ego_clearance
         chunks.append(pts[keep])
     return np.concatenate(chunks) if chunks else np.zeros((0, 3))
 
@@ -59,7 +71,7 @@ def init_background_params(config: BackgroundConfig, context: NodeContext) -> di
     from nearest neighbours. Shared by every node that starts from the static scene."""
     scene = context.scene
     rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
-    pts = lidar_points_for_init(scene, scene.train_frames, context.excluded_tracks)
+    pts = lidar_points_for_init(scene, scene.train_frames, context.excluded_tracks, config.ego_clearance)
     cams = np.stack([c.cam_to_world[f, :3, 3] for c in scene.cameras for f in scene.train_frames])
     center = cams.mean(0)
     if len(pts):

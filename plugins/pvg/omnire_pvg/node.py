@@ -127,7 +127,7 @@ def init_pvg_params(config: PVGConfig, context: NodeContext, to_pvg_time) -> dic
     rng = np.random.default_rng(int(torch.randint(0, 2**31, (1,), generator=context.generator)))
     pts, cols, scales, peaks, seen = [], [], [], [], []
     for f in frames:
-        p = lidar_points_for_init(scene, [f], context.excluded_tracks)
+        p = lidar_points_for_init(scene, [f], context.excluded_tracks, config.ego_clearance)
         p = voxel_downsample(p, config.voxel_size)
         if len(p) == 0:
             continue
