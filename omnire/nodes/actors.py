@@ -281,7 +281,7 @@ class ActorState:
     body: Optional[torch.Tensor] = None
 
     def select(self, keep: torch.Tensor) -> "ActorState":
-        """The actors where ``keep`` (P,) bool is True, in the same order."""
+        """The actors ``keep`` picks: a (P,) bool mask or increasing indices (keeps the order)."""
         return ActorState(self.ids[keep], self.R[keep], self.t[keep], None if self.body is None else self.body[keep])
 
 

@@ -557,9 +557,7 @@ class Simulation:
                 if len(keep) == len(state.ids):
                     rest = state
                 else:
-                    sel = torch.tensor(keep, dtype=torch.long, device=state.ids.device)
-                    rest = ActorState(state.ids[sel], state.R[sel], state.t[sel],
-                                      None if state.body is None else state.body[sel])
+                    rest = state.select(torch.tensor(keep, dtype=torch.long, device=state.ids.device))
                 out.append((name, node.gaussians_for(rest, time, camera)))
             for actor in edited.values():
                 if actor.removed or (only is not None and actor.key not in only):
