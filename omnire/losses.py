@@ -7,7 +7,7 @@ config weights them by name.
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
+from typing import Callable, Optional
 
 import torch
 import torch.nn.functional as F
@@ -33,6 +33,8 @@ class LossContext:
         scene_pixels: (H, W, 1) 0 on the recording vehicle (ego mask), 1 elsewhere; None =
             every pixel. Losses ignore the vehicle's pixels.
         step: training step.
+        ssim: the SSIM map function (``ssim_map``'s contract); the trainer passes the
+            rasterizer's native one when it has one (``Rasterizer.ssim_map``).
     """
 
     rgb: torch.Tensor
@@ -46,6 +48,7 @@ class LossContext:
     sky_trusted: Optional[torch.Tensor] = None
     scene_pixels: Optional[torch.Tensor] = None
     step: int = 0
+    ssim: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = dataclasses.field(default_factory=lambda: ssim_map)
 
 
 def masked_mean(values: torch.Tensor, ctx: LossContext) -> torch.Tensor:
@@ -86,7 +89,7 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 
 
 
 def dssim_loss(ctx: LossContext) -> torch.Tensor:
-    return masked_mean(1.0 - ssim_map(ctx.rgb, ctx.target), ctx)
+    return masked_mean(1.0 - ctx.ssim(ctx.rgb, ctx.target), ctx)
 
 
 def lidar_inverse_depth_loss(ctx: LossContext) -> Optional[torch.Tensor]:

@@ -25,7 +25,7 @@ from omnire.config import to_dict
 from omnire.data.scene import SceneData, SceneTime, View
 from omnire.errors import ConfigError, UserError
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
-from omnire.losses import LossContext, masked_mean
+from omnire.losses import LossContext, masked_mean, ssim_map
 from omnire.observations import Observations
 from omnire.resolution import downscale_factor
 from omnire.optim import Optimizers
@@ -209,6 +209,7 @@ class Trainer:
             sky_trusted=obs.sky_trusted(view, factor) if self.use_sky_masks else None,
             scene_pixels=obs.scene_pixels(view, factor),
             step=self.step,
+            ssim=getattr(self.model.rasterizer, "ssim_map", ssim_map),
         )
 
     def resolution_factor(self, step: Optional[int] = None) -> int:

@@ -21,7 +21,7 @@ from typing import Optional
 
 log = logging.getLogger(__name__)
 
-SOURCE = Path(__file__).parent / "csrc" / "raster.cpp"
+SOURCES = [Path(__file__).parent / "csrc" / name for name in ("raster.cpp", "ssim.cpp")]
 # Portable flags: AVX2 + FMA (not -march=native, which ties the .so to one machine).
 # -ffp-contract=off keeps forward and backward bit-identical in their skip/stop decisions.
 CFLAGS = ["-O3", "-mavx2", "-mfma", "-fopenmp", "-ffp-contract=off", "-std=c++17"]
@@ -59,7 +59,8 @@ def _build() -> ModuleType:
     from torch.utils import cpp_extension
 
     digest = hashlib.sha256()
-    digest.update(SOURCE.read_bytes())
+    for source in SOURCES:
+        digest.update(source.read_bytes())
     digest.update(" ".join(CFLAGS + LDFLAGS).encode())
     digest.update(torch.__version__.encode())
     name = "omnire_raster_cpu_" + digest.hexdigest()[:12]
@@ -67,7 +68,7 @@ def _build() -> ModuleType:
     build_dir.mkdir(parents=True, exist_ok=True)
     return cpp_extension.load(
         name=name,
-        sources=[str(SOURCE)],
+        sources=[str(source) for source in SOURCES],
         extra_cflags=CFLAGS,
         extra_ldflags=LDFLAGS,
         build_directory=str(build_dir),

@@ -18,6 +18,7 @@ from omnire.geometry import rotmat_to_quat
 from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
 
 from ._build import load_extension
+from .ssim import ssim_map as native_ssim_map
 
 
 def _ext():
@@ -281,3 +282,8 @@ class CpuRasterizer:
         depth = dn / alpha.clamp_min(1e-10)
         return RenderOutput(rgb=rgb, depth=depth[..., None], alpha=alpha[..., None], radii=radii, means2d=means2d,
                             absgrad2d=absgrad), int(kept[0])
+
+    def ssim_map(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """(H, W, C) x2 -> (H, W, 1) SSIM, natively (:mod:`omnire_rasterizer_cpu.ssim`); the
+        D-SSIM loss uses it in place of :func:`omnire.losses.ssim_map` (same numbers)."""
+        return native_ssim_map(a, b, num_threads=self.num_threads)

@@ -1539,10 +1539,17 @@ std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std
                                      g_a, st, nt);
 }
 
+// ssim.cpp
+std::vector<at::Tensor> ssim_forward(at::Tensor a, at::Tensor b, at::Tensor window, int64_t nthreads);
+at::Tensor ssim_backward(at::Tensor a, at::Tensor b, at::Tensor window, at::Tensor stats, at::Tensor g_map,
+                         int64_t nthreads);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &raster_forward, "Gaussian rasterization forward (CPU)");
   m.def("backward", &raster_backward, "Gaussian rasterization backward (CPU)");
   m.def("forward_gaussians", &raster_forward_gaussians, "inference forward from raw Gaussian groups (CPU)");
   m.def("forward_train", &raster_forward_train, "training forward from raw Gaussian groups (CPU)");
   m.def("backward_train", &raster_backward_train, "training backward to raw Gaussian groups (CPU)");
+  m.def("ssim_forward", &ssim_forward, "SSIM map of two images (CPU)");
+  m.def("ssim_backward", &ssim_backward, "gradient of the SSIM map w.r.t. the first image (CPU)");
 }
