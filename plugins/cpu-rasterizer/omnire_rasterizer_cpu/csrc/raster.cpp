@@ -1229,6 +1229,13 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int64_t m = 0; m < M; ++m) {
     const int64_t k = int64_t(order[m] & 0xFFFFFFFFu);
+    if (m + 16 < M) {  // rows are read in depth order, i.e. scattered: fetch ahead
+      const int64_t ka = int64_t(order[m + 16] & 0xFFFFFFFFu);
+      __builtin_prefetch(recp + REC * ka);
+      __builtin_prefetch(recp + REC * ka + REC - 1);
+      __builtin_prefetch(colp + 3 * ka);
+      __builtin_prefetch(rectp + 4 * ka);
+    }
     gi[m] = k;
     for (int j = 0; j < REC; ++j) rc[REC * m + j] = recp[REC * k + j];
     for (int j = 0; j < 3; ++j) cc[3 * m + j] = colp[3 * k + j];
