@@ -3,7 +3,7 @@
 Third-party plugins (node types, dataparsers, rasterizers, losses, methods, commands, pose
 estimators, scene writers) import from here only; docs/plugins.md shows each in use.
 """
-from omnire.camera import CULL_SIGMAS, Camera, in_frustum, may_be_drawn
+from omnire.camera import CULL_SIGMAS, Camera, gaussian_reach, in_frustum, may_be_drawn
 from omnire.config import InstantiateConfig
 from omnire.data.dataparser import Dataparser, DataparserConfig, LogDataparserConfig, first_pose_world, frame_range
 from omnire.data.images import ImageCache, ImageReadError, image_size
@@ -94,7 +94,7 @@ __all__ = [
     "CheckpointError", "Reconstruction", "Registry", "RunDirectory", "RunDirectoryError", "RenderOutput", "SceneData", "SceneDataError", "SceneTime", "SceneWriterSpec",
     "Splats", "TrainConfig", "TrainObserverSpec", "Trainer", "TrainerConfig", "UserError", "View", "atomic_write_bytes",
     "atomic_write_text", "axis_angle_to_rotmat", "axis_rotation", "bracket", "check_raster_inputs", "colour_from_images",
-    "far_shell", "first_pose_world", "image_size", "frame_blend", "frame_range", "holdout_split", "hookimpl", "in_frustum",
+    "far_shell", "first_pose_world", "gaussian_reach", "image_size", "frame_blend", "frame_range", "holdout_split", "hookimpl", "in_frustum",
     "init_background_params", "init_gaussian_params", "interpolate_poses", "interpolate_track", "invert_se3",
     "knn_scales", "lidar_points_for_init", "points_in_box", "positional_encoding", "quat_multiply",
     "quat_to_rotmat", "rgb_to_sh0", "rot_z", "rotmat_to_axis_angle", "rotmat_to_quat", "slerp_rotmats",

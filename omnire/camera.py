@@ -136,6 +136,13 @@ CULL_SIGMAS = 4.0
 CULL_PAD_PIXELS = 3
 
 
+def gaussian_reach(log_scales: torch.Tensor) -> torch.Tensor:
+    """(N,) metres around each Gaussian's mean outside which it paints nothing that
+    :func:`may_be_drawn` keeps: ``CULL_SIGMAS`` times its largest scale, from the raw
+    (N, 3) log-scales (detached: culling takes no gradient)."""
+    return CULL_SIGMAS * log_scales.detach().amax(dim=-1).exp()
+
+
 def may_be_drawn(points: torch.Tensor, reach: "float | torch.Tensor", camera: Camera) -> torch.Tensor:
     """(N,) bool: False where nothing within ``reach`` metres (a float or (N,)) of the world
     ``points`` (N, 3) can be drawn by ``camera``: that ball lies outside its frustum widened

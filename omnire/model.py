@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from omnire.camera import CULL_SIGMAS, Camera, may_be_drawn
+from omnire.camera import Camera, gaussian_reach, may_be_drawn
 from omnire.camerapose import CameraPoseRefinement
 from omnire.data.scene import SceneData, SceneTime
 from omnire.errors import UserError
@@ -49,7 +49,7 @@ def cull_to_frustum(g: Gaussians, rows: Optional[torch.Tensor], camera: Camera
     widened by ``CULL_PAD_PIXELS`` (:func:`omnire.camera.may_be_drawn`); no other can be
     drawn, so the image is unchanged. ``rows`` (the node rows of ``g``, None = all in order)
     is narrowed to match."""
-    reach = CULL_SIGMAS * torch.exp(g.scales.detach().max(dim=-1).values)
+    reach = gaussian_reach(g.scales)
     keep = torch.nonzero(may_be_drawn(g.means.detach(), reach, camera)).squeeze(1)
     if len(keep) == len(g):
         return g, rows

@@ -24,7 +24,7 @@ from omnire.data.scene import ActorTrack, SceneData, SceneTime
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 from omnire.geometry import axis_angle_to_rotmat, quat_left_matrix, quat_multiply, rotmat_to_quat, slerp_rotmats
 from omnire.interpolation import bracket
-from omnire.camera import CULL_SIGMAS, Camera, may_be_drawn
+from omnire.camera import Camera, gaussian_reach, may_be_drawn
 from omnire.nodes.base import GaussianNode, GaussianNodeConfig, NodeContext, NodeOutput, ParamGroup
 from omnire.pointcloud import points_in_box
 from omnire.rowsparse import gather_rows
@@ -336,8 +336,9 @@ class ActorNode(GaussianNode):
 
     def instance_reach(self, state: ActorState) -> Optional[torch.Tensor]:
         """(P,) metres around each box centre ``state.t`` within which every Gaussian of the
-        actors ``state.ids``, drawn in ``state``, lies together with ``CULL_SIGMAS`` times its
-        largest scale; None when the node cannot bound its Gaussians (nothing is culled)."""
+        actors ``state.ids``, drawn in ``state``, lies together with its
+        :func:`~omnire.camera.gaussian_reach`; None when the node cannot bound its Gaussians
+        (nothing is culled)."""
         return None
 
     def in_view(self, state: ActorState, camera: Camera) -> ActorState:
@@ -411,10 +412,10 @@ class BoxActorNode(ActorNode):
                                                                  self.config.lr_box_translation)
 
     def instance_reach(self, state: ActorState) -> Optional[torch.Tensor]:
-        """A box moves its Gaussians rigidly: the largest |box-local mean| + ``CULL_SIGMAS``
-        x largest scale over each actor's rows (0 for an actor with no rows)."""
+        """A box moves its Gaussians rigidly: the largest |box-local mean| + Gaussian reach
+        over each actor's rows (0 for an actor with no rows)."""
         p = self.gaussian_params
-        row_reach = p["means"].detach().norm(dim=-1) + CULL_SIGMAS * p["scales"].detach().amax(dim=-1).exp()
+        row_reach = p["means"].detach().norm(dim=-1) + gaussian_reach(p["scales"])
         return segment_max(row_reach, self.instance_offsets())[state.ids]
 
 

@@ -44,7 +44,6 @@ from torch import nn
 import torch.nn.functional as F
 
 from omnire.api import (
-    CULL_SIGMAS,
     ActorNode,
     ActorState,
     Camera,
@@ -57,6 +56,7 @@ from omnire.api import (
     axis_angle_to_rotmat,
     colour_from_images,
     frame_blend,
+    gaussian_reach,
     init_gaussian_params,
     knn_scales,
     quat_multiply,
@@ -324,7 +324,7 @@ class SMPLNode(ActorNode):
         spread = (J - root[:, None]).norm(dim=-1).amax(dim=1)  # (P,)
         p = self.gaussian_params
         row_root = self.joints[self.gaussian_buffers["instance"], 0]  # (N, 3)
-        row_reach = (p["means"].detach() - row_root).norm(dim=-1) + CULL_SIGMAS * p["scales"].detach().amax(dim=-1).exp()
+        row_reach = (p["means"].detach() - row_root).norm(dim=-1) + gaussian_reach(p["scales"])
         rows = segment_max(row_reach, self.instance_offsets())[state.ids]
         return root.norm(dim=-1) + torch.stack(chain, 1).amax(dim=1) + spread + rows
 
