@@ -418,6 +418,16 @@ inline Span span_of(const S* g, int x0, int y0, int tw, int th) {
   return s;
 }
 
+// A tile's list jumps through the records (depth order over the whole image): fetch the
+// record (and colour) of the Gaussian PREFETCH_AHEAD entries on while this one is drawn.
+constexpr int PREFETCH_AHEAD = 4;
+template <typename S>
+inline void prefetch_record(const S* rec, const S* colors, int D, int64_t gi) {
+  __builtin_prefetch(rec + REC * gi);
+  __builtin_prefetch(rec + REC * gi + REC - 1);
+  __builtin_prefetch(colors + int64_t(D) * gi);
+}
+
 template <typename S>
 void render_forward(const Camera& cam, int D, int tilesX, int tilesY, const S* rec, const S* colors,
                     const int64_t* off, const int32_t* ids, S* out_acc, S* out_dn, S* out_a,
@@ -457,6 +467,7 @@ void render_forward(const Camera& cam, int D, int tilesX, int tilesY, const S* r
 
       for (int64_t e = off[tile]; e < off[tile + 1] && n_alive > 0; ++e) {
         const int64_t gi = ids[e];
+        if (e + PREFETCH_AHEAD < off[tile + 1]) prefetch_record(rec, colors, D, ids[e + PREFETCH_AHEAD]);
         const S* g = rec + REC * gi;
         const S* col = colors + int64_t(D) * gi;
         const Span sp = span_of<L>(g, x0, y0, tw, th);
@@ -569,6 +580,12 @@ void render_backward(const Camera& cam, int D, int tilesX, int tilesY, const S* 
 
       for (int64_t e = off[tile]; e < off[tile + 1] && n_alive > 0; ++e) {
         const int64_t gi = ids[e];
+        if (e + PREFETCH_AHEAD < off[tile + 1]) {
+          const int64_t ga = ids[e + PREFETCH_AHEAD];
+          prefetch_record(rec, colors, D, ga);
+          __builtin_prefetch(mybuf + ga * K, 1);
+          __builtin_prefetch(mybuf + ga * K + K - 1, 1);
+        }
         const S* g = rec + REC * gi;
         const S* col = colors + int64_t(D) * gi;
         const Span sp = span_of<L>(g, x0, y0, tw, th);
