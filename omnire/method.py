@@ -59,7 +59,7 @@ class MethodConfig:
     cull_to_view: bool = True
     """Drop Gaussians whose 3-sigma extent lies outside the camera frustum before colour
     evaluation and rasterization (same image, less work; their rows get no optimiser step),
-    and let nodes skip what the camera cannot see (actors out of view; deformablegs'
-    canonical Gaussians beyond its cull margin)."""
+    and let nodes skip what the camera cannot see (actors out of view, in renders without
+    autograd; deformablegs' canonical Gaussians beyond its cull margin)."""
     rasterizer: str = "auto"
     """Rasterizer backend name, or auto (gsplat on CUDA, native on CPU, else torch)."""

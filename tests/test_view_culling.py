@@ -31,10 +31,10 @@ def test_culling_renders_the_same_images_with_fewer_gaussians(method, tiny_scene
 
 
 def test_actors_out_of_view_are_skipped_and_the_images_unchanged(tiny_scene, tmp_path):
-    """Actor nodes leave out the actors the rendered camera cannot see (their whole ball out
-    of its view): same images, inference and training paths, also when the camera-pose
-    refinement turns the cameras away from their recorded poses (nodes cull against the
-    refined camera); a view that sees no actor still trains."""
+    """Renders leave out the actors the camera cannot see (their whole ball out of its
+    view): same images, also when the camera-pose refinement turns the cameras away from
+    their recorded poses (nodes cull against the refined camera). Training steps place every
+    present actor, so a view that sees none still steps their Gaussians."""
     import copy
 
     import numpy as np
@@ -72,12 +72,17 @@ def test_actors_out_of_view_are_skipped_and_the_images_unchanged(tiny_scene, tmp
     # where it is left out follows the refined camera: turned one way it loses the car
     # sooner, turned the other way later than the recorded camera does
     assert skipped[0.35, 1, 0] > 0 == skipped[0.0, 1, 0] and skipped[-0.35, 2, 0] == 0 < skipped[0.0, 2, 0]
-    # a view where the refined camera looks away from every actor still trains
+    # a view where the refined camera looks away from every actor: a render skips them all,
+    # a training step places them all (their Gaussians keep their Adam steps) and trains
     with torch.no_grad():
         model.camera_poses.delta[:, 1] = 3.0
     view = trainer.train_views[0]
-    out = model.gaussian_nodes()["rigid"].gaussians_at(trainer.recon.time(view.frame),
-                                                       model.camera_poses.refined_camera(trainer.recon.camera(view),
-                                                                                         trainer.recon.time(view.frame)))
+    rigid = model.gaussian_nodes()["rigid"]
+    t = trainer.recon.time(view.frame)
+    away = model.camera_poses.refined_camera(trainer.recon.camera(view), t)
+    with torch.no_grad():
+        out = rigid.gaussians_at(t, away)
     assert out is not None and len(out.gaussians) == 0
+    out = rigid.gaussians_at(t, away)
+    assert len(out.rows) == len(rigid.gaussians_at(t, None).rows) > 0
     trainer.train_step(view)
