@@ -102,3 +102,11 @@ def load_extension() -> tuple[Optional[ModuleType], str]:
                 _state["error"] = f"C++ extension failed to build: {type(exc).__name__}: {build_error_line(str(exc))}"
         log.warning("omnire cpu rasterizer unavailable: %s", _state["error"])
         return None, str(_state["error"])
+
+
+def extension() -> ModuleType:
+    """The loaded extension; a RuntimeError saying why when it is unavailable."""
+    mod, reason = load_extension()
+    if mod is None:
+        raise RuntimeError(f"the cpu rasterizer's native extension is unavailable: {reason}")
+    return mod

@@ -17,15 +17,8 @@ from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 from omnire.geometry import rotmat_to_quat
 from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
 
-from ._build import load_extension
+from ._build import extension as _ext
 from .ssim import ssim_map as native_ssim_map
-
-
-def _ext():
-    mod, reason = load_extension()
-    if mod is None:
-        raise RuntimeError(f"the cpu rasterizer is unavailable: {reason}")
-    return mod
 
 
 class _RasterizeFn(torch.autograd.Function):

@@ -14,14 +14,7 @@ from kornia.filters import get_gaussian_kernel1d
 
 from omnire.losses import ssim_map as torch_ssim_map
 
-from ._build import load_extension
-
-
-def _ext():
-    mod, reason = load_extension()
-    if mod is None:
-        raise RuntimeError(f"the cpu rasterizer's native SSIM is unavailable: {reason}")
-    return mod
+from ._build import extension as _ext
 
 
 class _SsimFn(torch.autograd.Function):

@@ -53,33 +53,13 @@ inline void blur_row_adjoint(const S* in, S* out, int n, const S* g, int p, S* p
   for (int j = n + p; j < m; ++j) out[reflect(j - p, n)] += gp[j];
 }
 
-// Vertical pass over P planes of H x W: out[r] = sum_u g[u] in[reflect(r + u - p)] (rows).
+// Weighted sums of rows over P planes of H x W: out[q] = sum over taps[q] of w * in[r], for
+// (r, w) in taps[q]. Gathered per output row, so no two threads write one row.
 template <typename S>
-void blur_columns(const S* in, S* out, int P, int H, int W, const S* g, int p, int nthreads) {
-#pragma omp parallel for schedule(static) num_threads(nthreads)
-  for (int64_t pr = 0; pr < int64_t(P) * H; ++pr) {
-    const int64_t plane = pr / H;
-    const int r = int(pr % H);
-    const S* base = in + plane * H * W;
-    S* o = out + plane * H * W + int64_t(r) * W;
-    for (int j = 0; j < W; ++j) o[j] = S(0);
-    for (int u = 0; u <= 2 * p; ++u) {
-      const S w = g[u];
-      const S* src = base + int64_t(reflect(r + u - p, H)) * W;
-      for (int j = 0; j < W; ++j) o[j] += w * src[j];
-    }
-  }
-}
+using RowTaps = std::vector<std::vector<std::pair<int, S>>>;
 
-// Adjoint of blur_columns: out[q] = sum over (r, u) with reflect(r + u - p) = q of g[u] in[r].
-// Gathered per output row (no two threads write one row): the interior rows take the rows
-// q - u + p; a border row also takes the rows whose reflected taps land on it.
 template <typename S>
-void blur_columns_adjoint(const S* in, S* out, int P, int H, int W, const S* g, int p, int nthreads) {
-  // taps[q]: (source row, weight) pairs, the same for every plane
-  std::vector<std::vector<std::pair<int, S>>> taps(H);
-  for (int r = 0; r < H; ++r)
-    for (int u = 0; u <= 2 * p; ++u) taps[reflect(r + u - p, H)].push_back({r, g[u]});
+void sum_rows(const S* in, S* out, int P, int H, int W, const RowTaps<S>& taps, int nthreads) {
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int64_t pq = 0; pq < int64_t(P) * H; ++pq) {
     const int64_t plane = pq / H;
@@ -92,6 +72,23 @@ void blur_columns_adjoint(const S* in, S* out, int P, int H, int W, const S* g, 
       for (int j = 0; j < W; ++j) o[j] += w * src[j];
     }
   }
+}
+
+// The vertical pass, out[q] = sum_u g[u] in[reflect(q + u - p)], as row taps; with
+// ``adjoint`` its transpose, out[q] = sum over (r, u) with reflect(r + u - p) = q of
+// g[u] in[r] (a border row also takes the rows whose reflected taps land on it).
+template <typename S>
+RowTaps<S> column_taps(int H, const S* g, int p, bool adjoint) {
+  RowTaps<S> taps(H);
+  for (int r = 0; r < H; ++r)
+    for (int u = 0; u <= 2 * p; ++u) {
+      const int q = reflect(r + u - p, H);
+      if (adjoint)
+        taps[q].push_back({r, g[u]});
+      else
+        taps[r].push_back({q, g[u]});
+    }
+  return taps;
 }
 
 // Horizontal pass (or its adjoint) over every row of P planes.
@@ -152,7 +149,7 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& a, const at::Tensor& b, c
   auto tmp = at::empty_like(raw);
   blur_rows(s, tmp.data_ptr<S>(), 5 * C, H, W, g, p, false, nt);
   auto stats = at::empty_like(raw);  // blurred: [mu_x, mu_y, E[x^2], E[y^2], E[xy]] x C
-  blur_columns(tmp.data_ptr<S>(), stats.data_ptr<S>(), 5 * C, H, W, g, p, nt);
+  sum_rows(tmp.data_ptr<S>(), stats.data_ptr<S>(), 5 * C, H, W, column_taps(H, g, p, false), nt);
   auto map = at::empty({H, W, 1}, a.options());
   S* mp = map.data_ptr<S>();
   const S* st = stats.data_ptr<S>();
@@ -204,7 +201,7 @@ at::Tensor backward_impl(const at::Tensor& a, const at::Tensor& b, const at::Ten
   }
   // adjoint of (columns after rows) = rows-adjoint after columns-adjoint
   auto tmp = at::empty_like(gstat);
-  blur_columns_adjoint(gs, tmp.data_ptr<S>(), 3 * C, H, W, g, p, nt);
+  sum_rows(gs, tmp.data_ptr<S>(), 3 * C, H, W, column_taps(H, g, p, true), nt);
   blur_rows(tmp.data_ptr<S>(), gs, 3 * C, H, W, g, p, true, nt);
   auto g_a = at::empty_like(a);
   S* ga = g_a.data_ptr<S>();
