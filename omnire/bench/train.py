@@ -276,15 +276,16 @@ def main(argv: list[str], plugins) -> int:
         if kept is not None:
             console.print(f"[bold]{m}[/]: reusing the earlier result (same command)")
             results.append(kept)
-            continue
-        console.print(f"[bold]{m}[/]: training ({args.steps} steps)...")
-        r = _run_method(args, m)
-        results.append(r)
-        status = "ok" if r["exit_code"] == 0 else f"FAILED: {r.get('error', '')[-300:]}"
-        console.print(f"  {m}: {status} in {r['elapsed_s']:.0f} s" + (f" ({r['rasterizer']} rasterizer)" if r.get("rasterizer") else ""))
-        mixed = rasterizer_line(results)
-        if mixed.startswith("**Warning"):  # say it as soon as it happens, not only in the table
-            console.print(f"[yellow]{mixed}[/] (pass --method-args=\"--method.rasterizer cpu\" to fail instead)")
+        else:
+            console.print(f"[bold]{m}[/]: training ({args.steps} steps)...")
+            r = _run_method(args, m)
+            results.append(r)
+            status = "ok" if r["exit_code"] == 0 else f"FAILED: {r.get('error', '')[-300:]}"
+            console.print(f"  {m}: {status} in {r['elapsed_s']:.0f} s" + (f" ({r['rasterizer']} rasterizer)" if r.get("rasterizer") else ""))
+            mixed = rasterizer_line(results)
+            if mixed.startswith("**Warning"):  # say it as soon as it happens, not only in the table
+                console.print(f"[yellow]{mixed}[/] (pass --method-args=\"--method.rasterizer cpu\" to fail instead)")
+        # after every entry, reused ones included: an interrupted comparison keeps what it has
         atomic_write_text(args.output / "results.json", json.dumps(
             {"args": json.loads(json.dumps(dataclasses.asdict(args), default=str)), "results": results}, indent=2))
     return _report(args, results, console)
