@@ -1248,9 +1248,7 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
     const int64_t k = int64_t(order[m] & 0xFFFFFFFFu);
     if (m + 16 < M) {  // rows are read in depth order, i.e. scattered: fetch ahead
       const int64_t ka = int64_t(order[m + 16] & 0xFFFFFFFFu);
-      __builtin_prefetch(recp + REC * ka);
-      __builtin_prefetch(recp + REC * ka + REC - 1);
-      __builtin_prefetch(colp + 3 * ka);
+      prefetch_record(recp, colp, 3, ka);
       __builtin_prefetch(rectp + 4 * ka);
     }
     gi[m] = k;
