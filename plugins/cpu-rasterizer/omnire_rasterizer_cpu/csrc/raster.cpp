@@ -260,6 +260,64 @@ inline void narrow_rect(int32_t* rc, double mx, double my, double ex, double ey,
   if (rc[3] < rc[1]) rc[3] = rc[1];
 }
 
+// Half-extents (ex, ey; pixels) of the region where a Gaussian can reach alpha >= 1/255,
+// from its record as stored (the values the pixel loops evaluate): the bounding box of the
+// ellipse {q <= T}, q = a u^2 + 2 b u v + c v^2 around the mean (conic [a b; b c]), i.e.
+// sqrt(T c / det) and sqrt(T a / det). q <= tq is alpha >= 1/255 (tq = -2 (floor + 0.01),
+// the record's power floor); T exceeds it by 0.01 (half the floor's margin, in power) and by
+// a relative 1e-5 (a + c)^2 / det, which bounds the float rounding of the pixel loops'
+// power: that rounding is at most a few ulp of a u^2 + c v^2, and (a + c)^2 / det bounds
+// (a u^2 + c v^2) / q on the ellipse (it is at least the conic's condition number). So a
+// pixel the extent leaves out fails the alpha test in the loops: skipping it changes
+// nothing. False (ex, ey untouched) for a degenerate stored conic.
+template <typename S>
+inline bool alpha_extent(const S* g, double* ex, double* ey) {
+  const double a = g[2], b = g[3], c = g[4];
+  const double det = a * c - b * b;
+  if (!(a > 0 && c > 0 && det > 0 && std::isfinite(det))) return false;
+  const double tq = -2.0 * (double(g[9]) + 0.01);
+  const double T = std::max(0.0, (tq + 0.01) * (1.0 + 1e-5 * (a + c) * (a + c) / det));
+  if (!std::isfinite(T)) return false;
+  *ex = std::sqrt(T * c / det);
+  *ey = std::sqrt(T * a / det);
+  return true;
+}
+
+// Tile rect [x0, y0, x1, y1) of a projected Gaussian's 3-sigma radius (the "drawn" test:
+// false when it reaches no tile); radius = ceil(3 sqrt(lambda_max)), at most 1e9.
+inline bool radius_rect(const Proj& p, int tilesX, int tilesY, double* radius, int32_t* rc) {
+  const double mid = 0.5 * (p.cov[0] + p.cov[2]);
+  const double lam = mid + std::sqrt(std::max(0.1, mid * mid - p.det));
+  double r = std::ceil(3.0 * std::sqrt(lam));
+  if (!std::isfinite(r)) return false;
+  r = std::min(r, 1e9);
+  const double mx = p.m2d[0], my = p.m2d[1];
+  rc[0] = int(std::min<double>(tilesX, std::max(0.0, std::floor((mx - r) / TILE))));
+  rc[1] = int(std::min<double>(tilesY, std::max(0.0, std::floor((my - r) / TILE))));
+  rc[2] = int(std::min<double>(tilesX, std::max(0.0, std::ceil((mx + r) / TILE))));
+  rc[3] = int(std::min<double>(tilesY, std::max(0.0, std::ceil((my + r) / TILE))));
+  *radius = r;
+  return rc[0] < rc[2] && rc[1] < rc[3];
+}
+
+// The record (layout at the top) of a drawn Gaussian with opacity o, and its tile rect
+// narrowed to its alpha >= 1/255 extent (alpha_extent of the stored values).
+template <typename S>
+inline void write_record(const Proj& p, double o, int tilesX, int tilesY, S* g, int32_t* rc) {
+  const double tq = 2.0 * std::log(o / ALPHA_MIN);
+  g[0] = S(p.m2d[0]); g[1] = S(p.m2d[1]);
+  g[2] = S(p.conic[0]); g[3] = S(p.conic[1]); g[4] = S(p.conic[2]);
+  g[5] = S(o); g[6] = S(p.t[2]);
+  g[9] = S(-0.5 * tq - 0.01);
+  double ex, ey;
+  if (!alpha_extent(g, &ex, &ey)) {  // degenerate stored conic: from the double covariance, with margins
+    ex = std::sqrt(std::max(0.0, tq) * p.cov[0]) * 1.02 + 0.5;
+    ey = std::sqrt(std::max(0.0, tq) * p.cov[2]) * 1.02 + 0.5;
+  }
+  g[7] = S(std::min(ex, 1e9)); g[8] = S(std::min(ey, 1e9));
+  narrow_rect(rc, p.m2d[0], p.m2d[1], ex, ey, tilesX, tilesY);
+}
+
 template <typename S>
 void project_all(int64_t N, const S* means, const S* quats, const S* scales, const S* opac,
                  const Camera& cam, double near, double far, double eps2d, int tilesX, int tilesY,
@@ -274,34 +332,13 @@ void project_all(int64_t N, const S* means, const S* quats, const S* scales, con
     means2d[2 * i + 1] = p.in_depth ? S(p.m2d[1]) : S(0);
     for (int k = 0; k < REC; ++k) rec[REC * i + k] = S(0);
     if (!p.ok) continue;
-    const double o = double(opac[i]);
-    const double mid = 0.5 * (p.cov[0] + p.cov[2]);
-    const double lam = mid + std::sqrt(std::max(0.1, mid * mid - p.det));
-    double r = std::ceil(3.0 * std::sqrt(lam));
-    if (!std::isfinite(r)) continue;
-    r = std::min(r, 1e9);
-    const double mx = p.m2d[0], my = p.m2d[1];
-    const double tx0 = std::floor((mx - r) / TILE), tx1 = std::ceil((mx + r) / TILE);
-    const double ty0 = std::floor((my - r) / TILE), ty1 = std::ceil((my + r) / TILE);
-    const int x0 = int(std::min<double>(tilesX, std::max(0.0, tx0)));
-    const int x1 = int(std::min<double>(tilesX, std::max(0.0, tx1)));
-    const int y0 = int(std::min<double>(tilesY, std::max(0.0, ty0)));
-    const int y1 = int(std::min<double>(tilesY, std::max(0.0, ty1)));
-    if (x0 >= x1 || y0 >= y1) continue;
+    double r;
+    if (!radius_rect(p, tilesX, tilesY, &r, rect + 4 * i)) {
+      for (int k = 0; k < 4; ++k) rect[4 * i + k] = 0;
+      continue;
+    }
     radii[i] = int32_t(r);
-    rect[4 * i] = x0; rect[4 * i + 1] = y0; rect[4 * i + 2] = x1; rect[4 * i + 3] = y1;
-    // Opacity-aware ellipse extent: alpha >= 1/255 needs q <= 2 ln(255 o); the slice of
-    // {q <= t} has half-width sqrt(t * cov_xx). Margins cover float rounding of q.
-    const double tq = 2.0 * std::log(o / ALPHA_MIN);
-    const double ex = std::sqrt(std::max(0.0, tq) * p.cov[0]) * 1.02 + 0.5;
-    const double ey = std::sqrt(std::max(0.0, tq) * p.cov[2]) * 1.02 + 0.5;
-    narrow_rect(rect + 4 * i, mx, my, ex, ey, tilesX, tilesY);
-    S* g = rec + REC * i;
-    g[0] = S(mx); g[1] = S(my);
-    g[2] = S(p.conic[0]); g[3] = S(p.conic[1]); g[4] = S(p.conic[2]);
-    g[5] = S(o); g[6] = S(p.t[2]);
-    g[7] = S(std::min(ex, 1e9)); g[8] = S(std::min(ey, 1e9));
-    g[9] = S(-0.5 * tq - 0.01);
+    write_record(p, double(opac[i]), tilesX, tilesY, rec + REC * i, rect + 4 * i);
   }
 }
 
@@ -964,29 +1001,10 @@ std::vector<at::Tensor> forward_gaussians_impl(const std::vector<at::Tensor>& me
       m2p[2 * k] = p.in_depth ? float(p.m2d[0]) : 0.0f;
       m2p[2 * k + 1] = p.in_depth ? float(p.m2d[1]) : 0.0f;
       if (!p.ok) continue;
-      const double od = double(o);
-      const double mid = 0.5 * (p.cov[0] + p.cov[2]);
-      const double lam = mid + std::sqrt(std::max(0.1, mid * mid - p.det));
-      double r = std::ceil(3.0 * std::sqrt(lam));
-      if (!std::isfinite(r)) continue;
-      r = std::min(r, 1e9);
-      const double mx = p.m2d[0], my = p.m2d[1];
-      const int x0 = int(std::min<double>(tilesX, std::max(0.0, std::floor((mx - r) / TILE))));
-      const int x1 = int(std::min<double>(tilesX, std::max(0.0, std::ceil((mx + r) / TILE))));
-      const int y0 = int(std::min<double>(tilesY, std::max(0.0, std::floor((my - r) / TILE))));
-      const int y1 = int(std::min<double>(tilesY, std::max(0.0, std::ceil((my + r) / TILE))));
-      if (x0 >= x1 || y0 >= y1) continue;
+      double r;
+      if (!radius_rect(p, tilesX, tilesY, &r, rectp + 4 * k)) continue;
       radp[k] = int32_t(r);
-      rectp[4 * k] = x0; rectp[4 * k + 1] = y0; rectp[4 * k + 2] = x1; rectp[4 * k + 3] = y1;
-      const double tq = 2.0 * std::log(od / ALPHA_MIN);
-      const double ex = std::sqrt(std::max(0.0, tq) * p.cov[0]) * 1.02 + 0.5;
-      const double ey = std::sqrt(std::max(0.0, tq) * p.cov[2]) * 1.02 + 0.5;
-      narrow_rect(rectp + 4 * k, mx, my, ex, ey, tilesX, tilesY);
-      g9[0] = float(mx); g9[1] = float(my);
-      g9[2] = float(p.conic[0]); g9[3] = float(p.conic[1]); g9[4] = float(p.conic[2]);
-      g9[5] = o; g9[6] = float(p.t[2]);
-      g9[7] = float(std::min(ex, 1e9)); g9[8] = float(std::min(ey, 1e9));
-      g9[9] = float(-0.5 * tq - 0.01);
+      write_record(p, double(o), tilesX, tilesY, g9, rectp + 4 * k);
       depth_f[k] = g9[6];
       // view direction from the camera centre, normalised as omnire.gaussians.Gaussians.colors
       float d[3] = {mp[3 * i] - center[0], mp[3 * i + 1] - center[1], mp[3 * i + 2] - center[2]};
@@ -1182,18 +1200,9 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       if (p.in_depth) { m2p[2 * k] = S(p.m2d[0]); m2p[2 * k + 1] = S(p.m2d[1]); }
       if (!p.ok) continue;
       const S o = sigmoid_of(G.opac[i]);
-      const double od = double(o);
-      const double mid = 0.5 * (p.cov[0] + p.cov[2]);
-      const double lam = mid + std::sqrt(std::max(0.1, mid * mid - p.det));
-      double r = std::ceil(3.0 * std::sqrt(lam));
-      if (!std::isfinite(r)) continue;
-      r = std::min(r, 1e9);
-      const double mx = p.m2d[0], my = p.m2d[1];
-      const int x0 = int(std::min<double>(tilesX, std::max(0.0, std::floor((mx - r) / TILE))));
-      const int x1 = int(std::min<double>(tilesX, std::max(0.0, std::ceil((mx + r) / TILE))));
-      const int y0 = int(std::min<double>(tilesY, std::max(0.0, std::floor((my - r) / TILE))));
-      const int y1 = int(std::min<double>(tilesY, std::max(0.0, std::ceil((my + r) / TILE))));
-      if (x0 >= x1 || y0 >= y1 || !(od > 0.0)) continue;
+      double r;
+      int32_t* rc = rectp + 4 * k;
+      if (!radius_rect(p, tilesX, tilesY, &r, rc) || !(double(o) > 0.0)) continue;
       S d[3], b[16];
       view_dir(mp, center, mv, d);
       sh_basis(G.deg, d, b);
@@ -1208,18 +1217,7 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       }
       if (!col_ok) { bad = std::min(bad, k); continue; }
       radp[k] = int32_t(r);
-      int32_t* rc = rectp + 4 * k;
-      rc[0] = x0; rc[1] = y0; rc[2] = x1; rc[3] = y1;
-      const double tq = 2.0 * std::log(od / ALPHA_MIN);
-      const double ex = std::sqrt(std::max(0.0, tq) * p.cov[0]) * 1.02 + 0.5;
-      const double ey = std::sqrt(std::max(0.0, tq) * p.cov[2]) * 1.02 + 0.5;
-      narrow_rect(rc, mx, my, ex, ey, tilesX, tilesY);
-      S* g = recp + REC * k;
-      g[0] = S(mx); g[1] = S(my);
-      g[2] = S(p.conic[0]); g[3] = S(p.conic[1]); g[4] = S(p.conic[2]);
-      g[5] = o; g[6] = S(p.t[2]);
-      g[7] = S(std::min(ex, 1e9)); g[8] = S(std::min(ey, 1e9));
-      g[9] = S(-0.5 * tq - 0.01);
+      write_record(p, double(o), tilesX, tilesY, recp + REC * k, rc);
     }
     if (bad != std::numeric_limits<int64_t>::max() && first_bad < 0) first_bad = bad;
     rejected += rej;
