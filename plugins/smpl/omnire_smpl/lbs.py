@@ -1,9 +1,10 @@
 """Batched forward kinematics and linear blend skinning in torch (SMPL conventions).
 
 Same maths as the float64 numpy reference :mod:`omnire_body.lbs` (tested against it), but
-batched over P people and with sparse per-point skinning weights: each point keeps its K
-largest joint weights (K = the most joints any template vertex uses, 6 for the shipped
-template), so blending costs (M, K, 12) instead of (M, 24, 12).
+batched over P people. Skinning weights are stored sparse per point (its K largest joint
+weights, K = the most joints any template vertex uses, 6 for the shipped template); the
+blend turns them into one (M_p, 24) x (24, 12) product per person when each person's
+points are contiguous, else gathers the K transforms of each point.
 """
 from __future__ import annotations
 
