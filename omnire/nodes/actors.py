@@ -359,10 +359,9 @@ class ActorNode(GaussianNode):
             return None  # absent actors cost nothing
         if camera is not None and not torch.is_grad_enabled():
             # Present but out of view: no transform, no rasterizer rows (renders only). A
-            # training step places every present actor: its Gaussians then get their Adam
-            # step with a zero gradient (momentum), which skipping them took away; on the
-            # whole PandaSet log that cost about 1 dB in the front-left camera (see
-            # docs/benchmarks.md, ninth session).
+            # training step places every present actor, so its Gaussians get their Adam step
+            # on a zero gradient (momentum) as with dense Adam; skipping them changed training
+            # (docs/benchmarks.md, ninth and tenth sessions).
             state = self.in_view(state, camera)
             if len(state.ids) == 0:
                 g, rows = self.present_gaussians(state.ids)  # no rows; the regularisers still run

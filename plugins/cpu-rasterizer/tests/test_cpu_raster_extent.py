@@ -47,7 +47,8 @@ def test_every_pixel_a_gaussian_reaches_is_inside_its_extent_and_tiles(seed):
     r = rec.double()
     ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
                             indexing="ij")
-    tile_of = (ys.long() // TILE) * TILES_X + xs.long() // TILE  # (H, W)
+    col, row = xs.long() // TILE, ys.long() // TILE  # (H, W) tile column / row of each pixel
+    tile_of = row * TILES_X + col
     checked = 0
     for i in torch.nonzero(radii > 0).flatten().tolist():
         mx, my, a, b, c, o = (float(v) for v in r[i, :6])
@@ -63,7 +64,6 @@ def test_every_pixel_a_gaussian_reaches_is_inside_its_extent_and_tiles(seed):
         r3 = float(radii[i])  # the 3-sigma radius's tile rect, as the kernel computes it
         tx0, tx1 = max(0, math.floor((mx - r3) / TILE)), min(TILES_X, math.ceil((mx + r3) / TILE))
         ty0, ty1 = max(0, math.floor((my - r3) / TILE)), min(TILES_Y, math.ceil((my + r3) / TILE))
-        col, row = xs.long() // TILE, ys.long() // TILE
         in_rect = (col >= tx0) & (col < tx1) & (row >= ty0) & (row < ty1)
         for t in torch.unique(tile_of[reached & in_rect]).tolist():
             assert i in ids[offsets[t]:offsets[t + 1]].tolist(), f"Gaussian {i} missing from the list of tile {t}"
