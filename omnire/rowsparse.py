@@ -19,6 +19,7 @@ count, as dense Adam does for every row.
 from __future__ import annotations
 
 import itertools
+from typing import Optional
 
 import torch
 
@@ -68,11 +69,20 @@ def init_adam_state(param: torch.Tensor, fused: bool) -> dict:
             "exp_avg_sq": torch.zeros_like(param, memory_format=torch.preserve_format)}
 
 
+def _runs_key(rows: torch.Tensor) -> tuple[int, int, int, int]:
+    """Identifies the memory ``rows`` (M,) occupies: the parameters one node gathered with one
+    row tensor get sparse gradients whose indices share it."""
+    return rows.untyped_storage().data_ptr(), rows.storage_offset(), rows.shape[0], rows.stride(0)
+
+
 @torch.no_grad()
-def sparse_adam_step(param: torch.Tensor, grad: torch.Tensor, state: dict, group: dict) -> None:
+def sparse_adam_step(param: torch.Tensor, grad: torch.Tensor, state: dict, group: dict,
+                     runs_cache: Optional[dict] = None) -> None:
     """One Adam step of the rows of ``param`` (N, ...) that ``grad`` (sparse COO, same
     shape) holds; ``state`` is the parameter's Adam state (created if empty), ``group`` its
-    ``torch.optim.Adam`` parameter group (lr, betas, eps, weight_decay, fused, ...)."""
+    ``torch.optim.Adam`` parameter group (lr, betas, eps, weight_decay, fused, ...).
+    ``runs_cache`` (a dict the caller keeps for the gradients of one backward pass) saves
+    finding the row runs again for each parameter gathered with the same rows."""
     from torch.optim.adam import adam
 
     if grad.layout != torch.sparse_coo or grad.shape != param.shape:
@@ -81,13 +91,20 @@ def sparse_adam_step(param: torch.Tensor, grad: torch.Tensor, state: dict, group
     # Autograd drops the "coalesced" flag when it stores the gradient; rows from
     # gather_rows are strictly increasing, which is all coalescing would ensure.
     rows, values = grad._indices()[0], grad._values()
-    if len(rows) > 1 and not bool((rows[1:] > rows[:-1]).all()):  # e.g. gathered twice: sum duplicates
-        grad = grad.coalesce()
-        rows, values = grad.indices()[0], grad.values()
+    cached = runs_cache.get(_runs_key(rows)) if runs_cache is not None else None
+    if cached is None:
+        if len(rows) > 1 and not bool((rows[1:] > rows[:-1]).all()):  # e.g. gathered twice: sum duplicates
+            grad = grad.coalesce()
+            rows, values = grad.indices()[0], grad.values()
+            cached = (None, *row_runs(rows))  # these rows are this gradient's own: not cached
+        else:
+            cached = (rows, *row_runs(rows))
+            if runs_cache is not None:  # the entry holds ``rows``: their memory (the key) stays theirs
+                runs_cache[_runs_key(rows)] = cached
+    firsts, lengths = cached[1], cached[2]
     fused = bool(group.get("fused"))
     if not state:
         state.update(init_adam_state(param, fused))
-    firsts, lengths = row_runs(rows)
     if not firsts:
         return
     offsets = list(itertools.accumulate(lengths[:-1], initial=0))  # where each run starts in ``values``
@@ -108,9 +125,10 @@ def sparse_adam_step(param: torch.Tensor, grad: torch.Tensor, state: dict, group
 def step_sparse_params(optimizer: torch.optim.Optimizer) -> None:
     """Step every parameter of ``optimizer`` whose gradient is sparse with
     :func:`sparse_adam_step` and clear that gradient, so the optimiser's own (dense) step
-    skips it."""
+    skips it. A node's parameters share their rows: the row runs are found once for all."""
+    runs_cache: dict = {}
     for group in optimizer.param_groups:
         for p in group["params"]:
             if p.grad is not None and p.grad.layout == torch.sparse_coo:
-                sparse_adam_step(p, p.grad, optimizer.state[p], group)
+                sparse_adam_step(p, p.grad, optimizer.state[p], group, runs_cache)
                 p.grad = None

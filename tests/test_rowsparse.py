@@ -96,3 +96,27 @@ def test_sparse_adam_sums_rows_gathered_twice():
     with torch.no_grad():
         sparse_adam_step(param, param.grad, state, group)
     torch.testing.assert_close(state["exp_avg"], 0.1 * expect)
+
+
+def test_step_sparse_params_shares_runs_only_between_gradients_of_the_same_rows():
+    """Two parameters gathered with one row tensor (a node's), one with other rows and one
+    gathered twice (coalesced): one optimiser step equals the textbook update of each."""
+    from omnire.rowsparse import step_sparse_params
+
+    torch.manual_seed(3)
+    a, b, c, d = (torch.randn(12, k, requires_grad=True) for k in (3, 4, 2, 1))
+    starts = [p.detach().clone() for p in (a, b, c, d)]
+    shared, other = torch.tensor([0, 1, 2, 6, 7, 11]), torch.tensor([3, 4, 5, 8, 9, 10])  # same length
+    loss = (gather_rows(a, shared) ** 2).sum() + (gather_rows(b, shared) ** 3).sum() + (gather_rows(c, other) ** 2).sum()
+    loss = loss + gather_rows(d, other).sum() + gather_rows(d, other[1:]).sum()
+    loss.backward()
+    dense = [p.grad.to_dense() for p in (a, b, c, d)]
+    opt = torch.optim.Adam([a, b, c, d], lr=0.1, eps=1e-15)
+    step_sparse_params(opt)
+    assert all(p.grad is None for p in (a, b, c, d))
+    for p, start, g, rows in zip((a, b, c, d), starts, dense, (shared, shared, other, other)):
+        expect, _, _ = reference_adam(start[rows].double(), [g[rows].double()], 0.1)
+        torch.testing.assert_close(p.detach()[rows].double(), expect, rtol=1e-5, atol=1e-6)
+        untouched = torch.ones(12, dtype=torch.bool)
+        untouched[rows] = False
+        assert torch.equal(p.detach()[untouched], start[untouched])
