@@ -46,6 +46,7 @@ from omnire.nodes.actors import (
     BoxActorConfig,
     BoxActorNode,
     frame_blend,
+    placed_output,
     segment_max,
     track_displacement,
     train_frame_bracket,
@@ -65,6 +66,7 @@ from omnire.nodes.base import (
     ParamGroup,
     init_gaussian_params,
 )
+from omnire.placement import Placement
 from omnire.pointcloud import colour_from_images, far_shell, knn_scales, points_in_box, to_tensor, voxel_downsample
 from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
 from omnire.registry import (
@@ -99,5 +101,6 @@ __all__ = [
     "knn_scales", "lidar_points_for_init", "points_in_box", "positional_encoding", "quat_multiply",
     "quat_to_rotmat", "rgb_to_sh0", "rot_z", "rotmat_to_axis_angle", "rotmat_to_quat", "slerp_rotmats",
     "to_tensor", "track_displacement", "train_frame_bracket", "transform_instances", "usable_track",
+    "placed_output", "Placement",
     "visible_in_cameras", "voxel_downsample", "write_png",
 ]

@@ -174,7 +174,7 @@ class SceneModel(nn.Module):
         transform = self.camera_poses.world_transform(camera, t) if self.camera_poses is not None else None
         if transform is None:
             return parts
-        return [(name, None if out is None else dataclasses.replace(out, gaussians=out.gaussians.transform(*transform)))
+        return [(name, None if out is None else out.with_gaussians(out.gaussians.transform(*transform)))
                 for name, out in parts]
 
     def finish_image(self, rgb: torch.Tensor, alpha: torch.Tensor, env: dict[str, EnvironmentNode],
@@ -299,24 +299,29 @@ class SceneModel(nn.Module):
         else ``rasterize_gaussians``); the rasterizer culls to the view itself
         (``cull_to_view``) and ``num_gaussians`` counts the rows it kept. ``moved`` (training
         only): the camera-pose correction's world transform, applied by the rasterizer."""
-        gs, slices, outputs, start = [], [], {}, 0
+        gs, placements, slices, outputs, start = [], [], [], {}, 0
         for name, out in parts:
             if out is None:
                 continue
-            if train or len(out.gaussians):  # training keeps empty outputs for the regularisers
+            n = out.num_gaussians
+            if train or n:  # training keeps empty outputs for the regularisers
                 outputs[name] = out
-            if len(out.gaussians) == 0:
+            if n == 0:
                 continue
-            gs.append(out.gaussians)
-            slices.append(NodeSlice(name, start, start + len(out.gaussians), out.rows))
-            start += len(out.gaussians)
+            # training draws placed outputs box-local under their poses: no world copy
+            placed = train and out.placement is not None
+            gs.append(out.local if placed else out.gaussians)
+            placements.append(out.placement if placed else None)
+            slices.append(NodeSlice(name, start, start + n, out.rows))
+            start += n
         if not gs:
             return self.composite(None, slices, outputs, camera, t, sh_degree, hidden)
         env = {n: m for n, m in self.environment_nodes().items() if n not in hidden}
         settings = RasterSettings(background=None if env else self._background)
         if train:
             out, kept = self.rasterizer.rasterize_gaussians_train(gs, camera, sh_degree, settings,
-                                                                  cull=self.method.cull_to_view, moved=moved)
+                                                                  cull=self.method.cull_to_view, moved=moved,
+                                                                  placements=placements)
         else:
             # colours use bands up to min(sh_degree, the largest degree present), as Gaussians.cat + colors do
             degree = min(sh_degree, max(g.sh_degree for g in gs))

@@ -64,7 +64,7 @@ def test_fused_training_path_matches_assemble_composite(method, step, tiny_scene
     nodes = trainer.model.gaussian_nodes()
     stats = {True: AbsGradStrategy(cfg.densify, trainer.model.scene_radius), False: AbsGradStrategy(
         cfg.densify, trainer.model.scene_radius)}
-    culled = False
+    culled = placed = False
     for view in trainer.train_views:
         fused, loss_f, grads_f = render_and_backward(trainer, view, True)
         ref, loss_r, grads_r = render_and_backward(trainer, view, False)
@@ -72,6 +72,7 @@ def test_fused_training_path_matches_assemble_composite(method, step, tiny_scene
         for fu, res in ((True, fused), (False, ref)):
             stats[fu].accumulate(nodes, res.slices, res.absgrad2d, res.radii, cam.width, cam.height)
         culled |= fused.num_gaussians < sum(len(o.gaussians) for o in fused.outputs.values())
+        placed |= any(o.placement is not None for o in fused.outputs.values())  # actors drawn box-local
         torch.testing.assert_close(fused.rgb, ref.rgb, rtol=0, atol=2e-6)
         torch.testing.assert_close(fused.alpha, ref.alpha, rtol=0, atol=2e-6)
         torch.testing.assert_close(fused.depth, ref.depth, rtol=1e-5, atol=1e-4)
@@ -106,6 +107,7 @@ def test_fused_training_path_matches_assemble_composite(method, step, tiny_scene
             torch.testing.assert_close(drawn[True][1], drawn[False][1], rtol=0,
                                        atol=1e-4 * max(1e-6, float(drawn[False][1].abs().max())))
     assert culled
+    assert placed == (method == "omnire")
     for name in stats[False].state:
         a, b = stats[True].state[name], stats[False].state[name]
         assert torch.equal(a["count"], b["count"]), name

@@ -22,10 +22,11 @@ from torch import nn
 
 from omnire.data.scene import ActorTrack, SceneData, SceneTime
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
-from omnire.geometry import axis_angle_to_rotmat, quat_left_matrix, quat_multiply, rotmat_to_quat, slerp_rotmats
+from omnire.geometry import axis_angle_to_rotmat, quat_multiply, rotmat_to_quat, slerp_rotmats
 from omnire.interpolation import bracket
 from omnire.camera import Camera, gaussian_reach, may_be_drawn
 from omnire.nodes.base import GaussianNode, GaussianNodeConfig, NodeContext, NodeOutput, ParamGroup
+from omnire.placement import Placement, _SegmentTransform  # noqa: F401 (_SegmentTransform: tests)
 from omnire.pointcloud import points_in_box
 from omnire.rowsparse import gather_rows
 
@@ -137,22 +138,39 @@ class ActorPoses(nn.Module):
                 ParamGroup("box_translation", [self.delta_t], lr_trans)]
 
 
+def instance_placement(instance: torch.Tensor, ids: torch.Tensor, R: torch.Tensor, t: torch.Tensor
+                       ) -> Optional[Placement]:
+    """The :class:`~omnire.placement.Placement` of box-local rows of the instances
+    ``instance`` (M,) by the poses R (P,3,3), t (P,3) of ``ids`` (P,), when the rows are
+    grouped by instance in the order of ``ids`` (as actor nodes gather them); else None."""
+    lengths = segment_lengths(instance, ids)
+    return None if lengths is None else Placement(lengths, R, t)
+
+
 def transform_instances(g: Gaussians, instance: torch.Tensor, ids: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> Gaussians:
     """Move box-local Gaussians to the world: row i uses the pose of instance ``instance[i]``,
     looked up in ``ids`` (P,) with poses R (P,3,3), t (P,3). Quaternions are computed once
     per instance, not per Gaussian.
 
     Rows as actor nodes gather them (grouped by instance in the order of ``ids``) are moved
-    one segment at a time (:class:`_SegmentTransform`: no per-row copy of the poses, and pose
+    one segment at a time (:meth:`Placement.apply`: no per-row copy of the poses, and pose
     gradients summed per segment by matrix products instead of scattered row by row); other
     row orders, and tensors off the CPU, take the per-row path (:func:`transform_rows`), which
     gives the same numbers."""
-    lengths = segment_lengths(instance, ids)
-    if lengths is None:
-        return transform_rows(g, instance, ids, R, t)
-    L = quat_left_matrix(rotmat_to_quat(R))  # (P, 4, 4): quat_multiply(q, b) == L @ b
-    means, quats = _SegmentTransform.apply(g.means.contiguous(), g.quats.contiguous(), R, t, L, lengths)
-    return dataclasses.replace(g, means=means, quats=quats)
+    placement = instance_placement(instance, ids, R, t)
+    return transform_rows(g, instance, ids, R, t) if placement is None else placement.apply(g)
+
+
+def placed_output(g: Gaussians, instance: torch.Tensor, ids: torch.Tensor, R: torch.Tensor, t: torch.Tensor,
+                  rows: Optional[torch.Tensor], time: SceneTime, extras: Optional[dict] = None) -> NodeOutput:
+    """A node output of box-local Gaussians ``g`` (rows of the instances ``instance``) put in
+    the world by the poses R (P,3,3), t (P,3) of ``ids`` (P,): placed
+    (:meth:`NodeOutput.placed`, the world copy made only if read) when the rows are grouped
+    as actor nodes gather them, else moved now (:func:`transform_rows`)."""
+    placement = instance_placement(instance, ids, R, t)
+    if placement is None:
+        return NodeOutput(transform_rows(g, instance, ids, R, t), rows, time, extras)
+    return NodeOutput.placed(g, placement, rows, time, extras)
 
 
 def transform_rows(g: Gaussians, instance: torch.Tensor, ids: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> Gaussians:
@@ -176,58 +194,6 @@ def segment_lengths(instance: torch.Tensor, ids: torch.Tensor) -> Optional[list[
     if int(lengths.sum()) != len(instance):
         return None
     return lengths.tolist()
-
-
-class _SegmentTransform(torch.autograd.Function):
-    """Rigid transforms of contiguous row segments: the ``lengths[p]`` rows of segment p get
-    means (n,3) -> means @ R[p].T + t[p] and quats (n,4) -> quats @ L[p].T (L: the
-    quaternion's left-multiplication matrix), one matrix product per segment. Inputs: means
-    (M,3), quats (M,4), R (P,3,3), t (P,3), L (P,4,4), lengths (P python ints, sum M).
-    Backward: row gradients g @ R[p] and g @ L[p]; pose gradients per segment, dR = g^T means,
-    dt = sum of g, dL = g_q^T quats (tested against :func:`transform_rows` with gradcheck)."""
-
-    @staticmethod
-    def forward(ctx, means, quats, R, t, L, lengths):
-        out_m, out_q = torch.empty_like(means), torch.empty_like(quats)
-        # contiguous transposes: a transposed 3x3 operand takes a slower matrix-product path
-        # (4x on a loaded machine), and addmm's bias broadcast is slower than a separate add
-        RT, LT = R.transpose(1, 2).contiguous(), L.transpose(1, 2).contiguous()
-        a = 0
-        for p, n in enumerate(lengths):
-            if n:
-                torch.mm(means[a:a + n], RT[p], out=out_m[a:a + n]).add_(t[p])
-                torch.mm(quats[a:a + n], LT[p], out=out_q[a:a + n])
-            a += n
-        ctx.save_for_backward(means, quats, R, L)
-        ctx.lengths = lengths
-        return out_m, out_q
-
-    @staticmethod
-    def backward(ctx, g_m, g_q):
-        means, quats, R, L = ctx.saved_tensors
-        need = ctx.needs_input_grad
-        g_m, g_q = g_m.contiguous(), g_q.contiguous()
-        g_means = torch.empty_like(means) if need[0] else None
-        g_quats = torch.empty_like(quats) if need[1] else None
-        g_R = torch.zeros_like(R) if need[2] else None
-        g_t = torch.zeros(R.shape[0], 3, dtype=R.dtype, device=R.device) if need[3] else None
-        g_L = torch.zeros_like(L) if need[4] else None
-        a = 0
-        for p, n in enumerate(ctx.lengths):
-            if n:
-                gm, gq = g_m[a:a + n], g_q[a:a + n]
-                if g_means is not None:
-                    torch.mm(gm, R[p], out=g_means[a:a + n])
-                if g_quats is not None:
-                    torch.mm(gq, L[p], out=g_quats[a:a + n])
-                if g_R is not None:
-                    g_R[p] = gm.T @ means[a:a + n]
-                if g_t is not None:
-                    g_t[p] = gm.sum(0)
-                if g_L is not None:
-                    g_L[p] = gq.T @ quats[a:a + n]
-            a += n
-        return g_means, g_quats, g_R, g_t, g_L, None
 
 
 def rows_grouped(instance: torch.Tensor) -> bool:

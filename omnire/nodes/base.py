@@ -37,6 +37,7 @@ from omnire.camera import Camera
 from omnire.config import InstantiateConfig
 from omnire.data.scene import SceneTime
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
+from omnire.placement import Placement
 
 
 @dataclasses.dataclass
@@ -53,22 +54,54 @@ class ParamGroup:
     """Linear warm-up from 0 (used for pose refinement)."""
 
 
-@dataclasses.dataclass
 class NodeOutput:
     """What a node contributes to one rendered view.
 
     Attributes:
-        gaussians: world-space Gaussians (M of them).
+        gaussians: world-space Gaussians (M of them); a placed output (:meth:`placed`)
+            computes them from ``local`` and ``placement`` when first read.
         rows: (M,) rows of the node's ``gaussian_params`` they came from, None = all rows in order.
         time: the moment rendered.
         extras: node-specific tensors its :meth:`Node.regularization` needs (e.g. deformed
             box-local means); nothing else reads them.
+        local, placement: a placed output's box-local Gaussians and the per-instance poses
+            that put them in the world (:class:`~omnire.placement.Placement`); None for
+            others. A rasterizer that draws placed rows itself takes these and no world copy
+            is made.
     """
 
-    gaussians: Gaussians
-    rows: Optional[torch.Tensor]
-    time: SceneTime
-    extras: dict[str, Any] = dataclasses.field(default_factory=dict)
+    def __init__(self, gaussians: Gaussians, rows: Optional[torch.Tensor], time: SceneTime,
+                 extras: Optional[dict[str, Any]] = None) -> None:
+        self._gaussians: Optional[Gaussians] = gaussians
+        self.rows = rows
+        self.time = time
+        self.extras: dict[str, Any] = {} if extras is None else extras
+        self.local: Optional[Gaussians] = None
+        self.placement: Optional[Placement] = None
+
+    @classmethod
+    def placed(cls, local: Gaussians, placement: Placement, rows: Optional[torch.Tensor], time: SceneTime,
+               extras: Optional[dict[str, Any]] = None) -> "NodeOutput":
+        """An output of box-local Gaussians ``local`` put in the world by ``placement``."""
+        if len(local) != placement.num_rows:
+            raise ValueError(f"NodeOutput.placed: {len(local)} Gaussians, the placement holds {placement.num_rows} rows")
+        out = cls(None, rows, time, extras)  # type: ignore[arg-type]
+        out.local, out.placement = local, placement
+        return out
+
+    @property
+    def gaussians(self) -> Gaussians:
+        if self._gaussians is None:
+            self._gaussians = self.placement.apply(self.local)
+        return self._gaussians
+
+    @property
+    def num_gaussians(self) -> int:
+        return len(self.local) if self._gaussians is None else len(self._gaussians)
+
+    def with_gaussians(self, gaussians: Gaussians) -> "NodeOutput":
+        """The same output with world Gaussians ``gaussians`` (e.g. moved) in place of its own."""
+        return NodeOutput(gaussians, self.rows, self.time, self.extras)
 
 
 @dataclasses.dataclass

@@ -14,7 +14,8 @@ import torch
 
 from omnire.camera import Camera
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
-from omnire.geometry import rotmat_to_quat
+from omnire.geometry import quat_multiply, rotmat_to_quat
+from omnire.placement import Placement
 from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
 
 from ._build import extension as _ext
@@ -62,33 +63,87 @@ class _RasterizeFn(torch.autograd.Function):
         return g_means, g_quats, g_scales, g_opac, g_colors, None, None, None, None
 
 
+def row_moves(parts: list[Gaussians], moved: Optional[tuple[torch.Tensor, torch.Tensor]],
+              placements: Optional[list[Optional[Placement]]], dtype: torch.dtype
+              ) -> tuple[Optional[tuple[list[int], list[bool]]], Optional[torch.Tensor], Optional[torch.Tensor],
+                         Optional[torch.Tensor]]:
+    """The moves the parts' rows are drawn under, as :class:`_RasterizeGaussiansFn` takes them:
+    segments (row counts (S), moved or not (S)) and their moves R (S,3,3), t (S,3), qa (S,4)
+    (differentiable in ``moved`` and the placements' poses); all None when nothing moves. A
+    placed part's segment p moves by ``moved`` after its pose: R = R_m R_p, t = R_m t_p + t_m,
+    qa = q_m q_p; a part in the world has one segment, moved by ``moved`` or not at all."""
+    if placements is not None and len(placements) != len(parts):
+        raise RasterInputError(f"placements: {len(placements)} for {len(parts)} parts, expected one per part "
+                               "(None for a part in the world)")
+    if moved is not None:
+        R_m, t_m = moved
+        if R_m.shape != (3, 3) or t_m.shape != (3,):
+            raise RasterInputError(f"moved: rotation {tuple(R_m.shape)} and translation {tuple(t_m.shape)}, "
+                                   "expected (3, 3) and (3,)")
+        R_m, t_m = R_m.to(dtype), t_m.to(dtype)
+        q_m = rotmat_to_quat(R_m)
+    if moved is None and (placements is None or all(p is None for p in placements)):
+        return None, None, None, None
+    identity = (torch.eye(3, dtype=dtype)[None], torch.zeros(1, 3, dtype=dtype),
+                torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=dtype))
+    rows: list[int] = []
+    on: list[bool] = []
+    Rs, ts, qs = [], [], []
+    for part, placement in zip(parts, placements or [None] * len(parts)):
+        if placement is None:
+            rows.append(len(part))
+            on.append(moved is not None)
+            if moved is None:
+                R, t, q = identity
+            else:
+                R, t, q = R_m[None], t_m[None], q_m[None]
+        else:
+            if placement.num_rows != len(part):
+                raise RasterInputError(f"placements: a placement of {placement.num_rows} rows for a part of "
+                                       f"{len(part)} Gaussians")
+            rows.extend(placement.lengths)
+            on.extend([True] * len(placement.lengths))
+            R, t = placement.R.to(dtype), placement.t.to(dtype)
+            q = rotmat_to_quat(R)
+            if moved is not None:
+                R, t, q = R_m @ R, t @ R_m.T + t_m, quat_multiply(q_m.expand_as(q), q)
+        Rs.append(R)
+        ts.append(t)
+        qs.append(q)
+    return (rows, on), torch.cat(Rs), torch.cat(ts), torch.cat(qs)
+
+
 class _RasterizeGaussiansFn(torch.autograd.Function):
     """Training path from raw Gaussians in G groups (node outputs, not concatenated).
 
     Inputs: ``meta`` (non-tensor settings, see :meth:`CpuRasterizer.rasterize_gaussians_train`),
-    ``absgrad`` (N, 2) buffer the backward adds AbsGrad into, the move the scene is seen
-    under (rotation R (3,3), translation t (3,), R's quaternion qa (4,); all None without
-    one), then 6 tensors per group: means (n,3), quats (n,4), log-scales (n,3), opacity
-    logits (n,), sh0 (n,1,3), shN (n,K,3).
+    ``absgrad`` (N, 2) buffer the backward adds AbsGrad into, ``segments`` (row counts (S)
+    of consecutive segments of the groups' rows, and whether each is moved; None: nothing
+    moved) with the segments' moves x -> R x + t (rotations R (S,3,3), translations t (S,3),
+    R's quaternions qa (S,4); None without segments), then 6 tensors per group: means (n,3),
+    quats (n,4), log-scales (n,3), opacity logits (n,), sh0 (n,1,3), shN (n,K,3).
     Outputs: acc (H,W,3), depth numerator (H,W), alpha (H,W), radii (N,) int32, means2d (N,2),
     Gaussians not rejected (1,) int64 (the last three carry no gradient). Gradients reach every raw tensor of every group.
     """
 
     @staticmethod
-    def forward(ctx, meta, absgrad, R, t, qa, *tensors):
+    def forward(ctx, meta, absgrad, segments, R, t, qa, *tensors):
         sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads = meta
         G = len(tensors) // 6
         groups = [list(tensors[k::6]) for k in range(6)]
-        moved = torch.zeros(0, dtype=torch.float64)
-        if R is not None:  # x -> R x + t: the kernel sees it through the composed view matrix
-            moved = torch.cat([R.detach().reshape(9), t.detach(), qa.detach()]).to(torch.float64)
-            move = torch.eye(4, dtype=torch.float64)
-            move[:3, :3], move[:3, 3] = R.detach(), t.detach()
-            viewmat = viewmat @ move
+        # x -> R x + t per segment: the kernel draws each through the view matrix composed with its move
+        seg_rows = torch.zeros(0, dtype=torch.int64)
+        moves = torch.zeros(0, 16, dtype=torch.float64)
+        move_on = torch.zeros(0, dtype=torch.bool)
+        if segments is not None:
+            seg_rows = torch.tensor(segments[0], dtype=torch.int64)
+            move_on = torch.tensor(segments[1], dtype=torch.bool)
+            moves = torch.cat([R.detach().reshape(-1, 9), t.detach(), qa.detach()], 1).to(torch.float64).contiguous()
             ctx.move_rotation = R.detach()
-        ctx.moved = moved
+        ctx.segments = (seg_rows, moves, move_on)
         (acc, dn, alpha, radii, means2d, rec, col, gidx, offsets, ids, bad, kept) = _ext().forward_train(
-            *groups, sh_degree, center, moved, viewmat, K, width, height, near, far, eps2d, cull, nthreads)
+            *groups, sh_degree, center, seg_rows, moves, move_on, viewmat, K, width, height, near, far, eps2d,
+            cull, nthreads)
         if int(bad[0]) >= 0:
             raise RasterInputError(f"Gaussian row {int(bad[0])} (of the {G} concatenated parts) has non-finite "
                                    "parameters or colour; refusing to render a NaN image")
@@ -111,20 +166,21 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
         def grad_or_zeros(g, like):
             return torch.zeros_like(like) if g is None else g.contiguous().to(like.dtype)
 
+        seg_rows, moves, move_on = ctx.segments
         grads = _ext().backward_train(
-            *groups, sh_degree, center, ctx.moved, viewmat, K, width, height, near, far, eps2d,
+            *groups, sh_degree, center, seg_rows, moves, move_on, viewmat, K, width, height, near, far, eps2d,
             rec, col, gidx, offsets, ids, acc, dn, alpha,
             grad_or_zeros(g_acc, acc), grad_or_zeros(g_dn, dn), grad_or_zeros(g_alpha, alpha), nthreads)
         g_R = g_t = g_qa = None
-        if ctx.moved.numel():
-            # sums over the rows in the unmoved frame: the moved means' gradient is R g_mean
+        if bool(move_on.any()):
+            # per segment, sums over its rows in the unmoved frame: the moved means' gradient is R g_mean
             sums = grads.pop()
             R = ctx.move_rotation.to(torch.float64)
-            g_R = (R @ sums[:9].reshape(3, 3)).to(ctx.move_rotation.dtype)
-            g_t = (R @ sums[9:12]).to(ctx.move_rotation.dtype)
-            g_qa = sums[12:].to(ctx.move_rotation.dtype)
+            g_R = (R @ sums[:, :9].reshape(-1, 3, 3)).to(ctx.move_rotation.dtype)
+            g_t = (R @ sums[:, 9:12, None])[..., 0].to(ctx.move_rotation.dtype)
+            g_qa = sums[:, 12:].to(ctx.move_rotation.dtype)
         ctx.absgrad.add_(grads[-1].to(ctx.absgrad.dtype))
-        return (None, None, g_R, g_t, g_qa, *grads[:-1])
+        return (None, None, None, g_R, g_t, g_qa, *grads[:-1])
 
 
 class CpuRasterizer:
@@ -219,7 +275,8 @@ class CpuRasterizer:
 
     def rasterize_gaussians_train(self, parts: list[Gaussians], camera: Camera, sh_degree: int,
                                   settings: RasterSettings = RasterSettings(), cull: bool = True,
-                                  moved: Optional[tuple[torch.Tensor, torch.Tensor]] = None
+                                  moved: Optional[tuple[torch.Tensor, torch.Tensor]] = None,
+                                  placements: Optional[list[Optional[Placement]]] = None
                                   ) -> tuple[RenderOutput, int]:
         """Training rendering of raw Gaussians in parts (node outputs, not concatenated), with
         gradients to every raw tensor of every part: activations (exp of log-scales, sigmoid
@@ -236,7 +293,13 @@ class CpuRasterizer:
         first (rotations composed as ``quat(R) q``, as :meth:`Gaussians.transform`; a camera-
         pose correction, omnire/camerapose.py) without a moved copy of them: the view matrix
         is composed with the move, and R and t get their gradients (through R's quaternion
-        too) from the rows' own."""
+        too) from the rows' own.
+
+        ``placements`` (one per part, None for a part in the world): a part with a
+        :class:`~omnire.placement.Placement` holds box-local rows, drawn placed by their
+        segments' poses (after them ``moved``, if given) without a world copy; the poses get
+        their gradients the same way. Same pixels and gradients as drawing
+        ``placement.apply(part)``, up to float rounding."""
         if not parts:
             raise RasterInputError("rasterize_gaussians_train: no parts")
         if camera.device.type != "cpu" or any(p.means.device.type != "cpu" for p in parts):
@@ -261,14 +324,8 @@ class CpuRasterizer:
                 camera.K.detach().to(torch.float64).contiguous(), int(camera.width), int(camera.height),
                 float(settings.near), float(settings.far), float(settings.eps2d), bool(cull),
                 int(self.num_threads or torch.get_num_threads()))
-        R = t = qa = None
-        if moved is not None:
-            R, t = moved
-            if R.shape != (3, 3) or t.shape != (3,):
-                raise RasterInputError(f"moved: rotation {tuple(R.shape)} and translation {tuple(t.shape)}, "
-                                       "expected (3, 3) and (3,)")
-            qa = rotmat_to_quat(R)
-        acc, dn, alpha, radii, means2d, kept = _RasterizeGaussiansFn.apply(meta, absgrad, R, t, qa, *tensors)
+        segments, R, t, qa = row_moves(parts, moved, placements, dtype)
+        acc, dn, alpha, radii, means2d, kept = _RasterizeGaussiansFn.apply(meta, absgrad, segments, R, t, qa, *tensors)
         rgb = acc
         if settings.background is not None:
             rgb = acc + (1.0 - alpha)[..., None] * settings.background.to(dtype)

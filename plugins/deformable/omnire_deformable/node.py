@@ -32,8 +32,8 @@ from omnire.api import (
     NodeOutput,
     ParamGroup,
     SceneTime,
+    placed_output,
     positional_encoding,
-    transform_instances,
 )
 
 
@@ -103,7 +103,7 @@ class DeformableNode(BoxActorNode):
             q = g.quats / g.quats.norm(dim=-1, keepdim=True).clamp_min(1e-8)
             g = dataclasses.replace(g, means=g.means + d_mu, quats=q + d_q, scales=g.scales + d_s)
             extras = {"deformed_local_means": g.means, "instance": instance}
-        return NodeOutput(transform_instances(g, instance, ids, R, tr), rows, t, extras)
+        return placed_output(g, instance, ids, R, tr, rows, t, extras)
 
     def instance_reach(self, state: ActorState) -> None:
         """None: the deformation field can carry a Gaussian anywhere, so no actor is culled

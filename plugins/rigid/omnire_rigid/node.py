@@ -13,7 +13,7 @@ from typing import Optional
 
 import torch
 
-from omnire.api import ActorState, BoxActorConfig, BoxActorNode, Camera, NodeOutput, SceneTime, transform_instances
+from omnire.api import ActorState, BoxActorConfig, BoxActorNode, Camera, NodeOutput, SceneTime, placed_output
 
 
 @dataclasses.dataclass
@@ -31,8 +31,7 @@ class RigidNode(BoxActorNode):
     def gaussians_for(self, state: ActorState, t: SceneTime, camera: Optional[Camera] = None,
                       step: Optional[int] = None) -> Optional[NodeOutput]:
         g, rows = self.present_gaussians(state.ids)
-        return NodeOutput(transform_instances(g, self.gaussian_buffers["instance"][rows], state.ids, state.R, state.t),
-                          rows, t)
+        return placed_output(g, self.gaussian_buffers["instance"][rows], state.ids, state.R, state.t, rows, t)
 
     @torch.no_grad()
     def extra_prune_mask(self) -> torch.Tensor:

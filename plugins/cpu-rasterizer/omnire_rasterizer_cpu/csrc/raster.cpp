@@ -1065,29 +1065,89 @@ inline void sh_basis(int degree, const S d[3], S b[16]) {
   b[14] = S(SHD_C3[5]) * z * (xx - yy); b[15] = S(SHD_C3[6]) * x * (xx - 3 * yy);
 }
 
-// The scene seen moved by x -> R x + t before it is drawn (a camera-pose correction applied
-// to the Gaussians, omnire/camerapose.py; rotations compose as q' = qa q with qa the
-// quaternion of R). The caller composes the view matrix with the move, so projection needs
-// nothing more; the kernel moves the SH view directions the same way, and the training
-// backward returns the gradients of R, t and qa from the rows' own gradients (the moved
-// means' gradient is R times the unmoved one's), so no moved copy of the Gaussians exists.
+// Rows drawn moved by x -> R x + t (a camera-pose correction applied to the Gaussians,
+// omnire/camerapose.py, or an actor's box pose placing its box-local Gaussians in the world,
+// or both composed; rotations compose as q' = qa q with qa the quaternion of R). Projection
+// goes through the recorded camera's view matrix composed with the move (Segment::cam); the
+// kernel moves the SH view directions the same way, and the training backward returns the
+// gradients of R, t and qa from the rows' own gradients (the moved means' gradient is R
+// times the unmoved one's), so no moved copy of the Gaussians exists.
 struct Moved {
   bool on = false;
   double R[9], t[3], qa[4];
 };
 
-// ``moved``: (16,) float64 [R row-major (9), t (3), qa (4)], or an empty tensor (no move).
-Moved make_moved(const at::Tensor& moved) {
+// The camera that sees unmoved rows as ``cam`` sees them moved by ``mv``: view matrix x move.
+Camera moved_camera(const Camera& cam, const Moved& mv) {
+  if (!mv.on) return cam;
+  Camera c = cam;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j)
+      c.R[3 * i + j] = cam.R[3 * i] * mv.R[j] + cam.R[3 * i + 1] * mv.R[3 + j] + cam.R[3 * i + 2] * mv.R[6 + j];
+    c.t[i] = cam.R[3 * i] * mv.t[0] + cam.R[3 * i + 1] * mv.t[1] + cam.R[3 * i + 2] * mv.t[2] + cam.t[i];
+  }
+  return c;
+}
+
+// Consecutive rows of one group drawn under one move: group-local rows [begin, end).
+struct Segment {
+  int64_t group, begin, end;
   Moved mv;
-  if (moved.numel() == 0) return mv;
-  TORCH_CHECK(moved.numel() == 16, "moved: expected 16 values [R (9), t (3), qa (4)], got ", moved.numel());
-  auto m = moved.detach().to(at::kCPU, at::kDouble).contiguous();
+  Camera cam;  // the recorded camera composed with mv
+};
+
+// ``seg_rows`` (S,) int64 row counts of consecutive segments covering the groups' rows in
+// order (none crossing a group's end), ``moves`` (S,16) float64 [R row-major (9), t (3), qa
+// (4)], ``move_on`` (S,) bool (false: drawn unmoved). S = 0: every group one unmoved segment.
+std::vector<Segment> make_segments(const std::vector<int64_t>& group_rows, const at::Tensor& seg_rows,
+                                   const at::Tensor& moves, const at::Tensor& move_on, const Camera& cam) {
+  std::vector<Segment> segs;
+  const int64_t S = seg_rows.numel();
+  if (S == 0) {
+    for (size_t g = 0; g < group_rows.size(); ++g) segs.push_back({int64_t(g), 0, group_rows[g], Moved(), cam});
+    return segs;
+  }
+  TORCH_CHECK(moves.numel() == 16 * S && move_on.numel() == S, "segments: ", S, " row counts need moves (", S,
+              ", 16) and move_on (", S, "), got ", moves.numel(), " and ", move_on.numel(), " values");
+  auto rows = seg_rows.detach().to(at::kCPU, at::kLong).contiguous();
+  auto m = moves.detach().to(at::kCPU, at::kDouble).contiguous();
+  auto on = move_on.detach().to(at::kCPU, at::kBool).contiguous();
+  const int64_t* r = rows.data_ptr<int64_t>();
   const double* v = m.data_ptr<double>();
-  mv.on = true;
-  for (int i = 0; i < 9; ++i) mv.R[i] = v[i];
-  for (int i = 0; i < 3; ++i) mv.t[i] = v[9 + i];
-  for (int i = 0; i < 4; ++i) mv.qa[i] = v[12 + i];
-  return mv;
+  const bool* o = on.data_ptr<bool>();
+  size_t g = 0;
+  int64_t at_row = 0;
+  for (int64_t k = 0; k < S; ++k) {
+    while (g < group_rows.size() && at_row == group_rows[g]) { ++g; at_row = 0; }
+    TORCH_CHECK(r[k] >= 0 && (r[k] == 0 || (g < group_rows.size() && at_row + r[k] <= group_rows[g])),
+                "segments: segment ", k, " (", r[k], " rows) crosses the end of a group or of the rows");
+    Segment sg{int64_t(std::min(g, group_rows.size() - 1)), at_row, at_row + r[k], Moved(), cam};
+    if (o[k]) {
+      sg.mv.on = true;
+      for (int i = 0; i < 9; ++i) sg.mv.R[i] = v[16 * k + i];
+      for (int i = 0; i < 3; ++i) sg.mv.t[i] = v[16 * k + 9 + i];
+      for (int i = 0; i < 4; ++i) sg.mv.qa[i] = v[16 * k + 12 + i];
+      sg.cam = moved_camera(cam, sg.mv);
+    }
+    segs.push_back(sg);
+    at_row += r[k];
+  }
+  while (g < group_rows.size() && at_row == group_rows[g]) { ++g; at_row = 0; }
+  TORCH_CHECK(g == group_rows.size(), "segments: the row counts cover fewer rows than the groups hold");
+  return segs;
+}
+
+// Work units of the per-row loops: up to CHUNK rows of one segment (rows [begin, end) of
+// its group), so each unit has one move and one camera.
+struct Chunk { int64_t seg, begin, end; };
+constexpr int64_t CHUNK = 1024;
+
+std::vector<Chunk> make_chunks(const std::vector<Segment>& segs) {
+  std::vector<Chunk> chunks;
+  for (size_t k = 0; k < segs.size(); ++k)
+    for (int64_t b = segs[k].begin; b < segs[k].end; b += CHUNK)
+      chunks.push_back({int64_t(k), b, std::min(segs[k].end, b + CHUNK)});
+  return chunks;
 }
 
 // Unit view direction from the camera centre to ``mean`` (moved by ``mv`` when on),
@@ -1158,8 +1218,8 @@ std::vector<RawGroup<S>> raw_groups(const std::vector<at::Tensor>& means, const 
 
 template <typename S>
 std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& groups, int64_t N, const double center[3],
-                                           const Moved& mv, const Camera& cam, double near, double far, double eps2d,
-                                           bool cull, at::ScalarType st, int nthreads) {
+                                           const std::vector<Segment>& segs, const Camera& cam, double near, double far,
+                                           double eps2d, bool cull, at::ScalarType st, int nthreads) {
   const int W = cam.W, H = cam.H;
   const int tilesX = (W + TILE - 1) / TILE, tilesY = (H + TILE - 1) / TILE;
   auto opts = at::TensorOptions().dtype(st);
@@ -1174,13 +1234,15 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
   int32_t* rectp = rect_all.data_ptr<int32_t>();
   int32_t* radp = radii.data_ptr<int32_t>();
   S* m2p = means2d.data_ptr<S>();
-  int64_t first_bad = -1, rejected = 0;
-  for (const RawGroup<S>& G : groups) {
-    int64_t bad = std::numeric_limits<int64_t>::max();
-    int64_t rej = 0;
-    // Dynamic chunks of rows, as in forward_gaussians_impl (no result depends on them).
-#pragma omp parallel for schedule(dynamic, 1024) num_threads(nthreads) reduction(min : bad) reduction(+ : rej)
-    for (int64_t i = 0; i < G.n; ++i) {
+  const std::vector<Chunk> chunks = make_chunks(segs);
+  int64_t bad = std::numeric_limits<int64_t>::max();
+  int64_t rejected = 0;
+  // Dynamic chunks of rows, as in forward_gaussians_impl (no result depends on them).
+#pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads) reduction(min : bad) reduction(+ : rejected)
+  for (size_t ci = 0; ci < chunks.size(); ++ci) {
+    const Segment& sg = segs[chunks[ci].seg];
+    const RawGroup<S>& G = groups[sg.group];
+    for (int64_t i = chunks[ci].begin; i < chunks[ci].end; ++i) {
       const int64_t k = G.start + i;
       const S *mp = G.means + 3 * i, *qp = G.quats + 4 * i, *sp = G.scales + 3 * i;
       radp[k] = 0;
@@ -1191,12 +1253,12 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       for (int j = 0; j < 3; ++j) finite = finite && std::isfinite(double(G.sh0[3 * i + j]));
       if (!finite) { bad = std::min(bad, k); continue; }
       const S sc[3] = {std::exp(sp[0]), std::exp(sp[1]), std::exp(sp[2])};
-      if (cull && off_screen(mp, double(std::max({sc[0], sc[1], sc[2]})), cam, near, far, eps2d)) {
-        ++rej;
+      if (cull && off_screen(mp, double(std::max({sc[0], sc[1], sc[2]})), sg.cam, near, far, eps2d)) {
+        ++rejected;
         continue;
       }
       Proj p;
-      project_one(mp, qp, sc, cam, near, far, eps2d, p);
+      project_one(mp, qp, sc, sg.cam, near, far, eps2d, p);
       if (p.in_depth) { m2p[2 * k] = S(p.m2d[0]); m2p[2 * k + 1] = S(p.m2d[1]); }
       if (!p.ok) continue;
       const S o = sigmoid_of(G.opac[i]);
@@ -1204,7 +1266,7 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       int32_t* rc = rectp + 4 * k;
       if (!radius_rect(p, tilesX, tilesY, &r, rc) || !(double(o) > 0.0)) continue;
       S d[3], b[16];
-      view_dir(mp, center, mv, d);
+      view_dir(mp, center, sg.mv, d);
       sh_basis(G.deg, d, b);
       S* col = colp + 3 * k;
       const int nb = (G.deg + 1) * (G.deg + 1);
@@ -1219,9 +1281,8 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       radp[k] = int32_t(r);
       write_record(p, double(o), tilesX, tilesY, recp + REC * k, rc);
     }
-    if (bad != std::numeric_limits<int64_t>::max() && first_bad < 0) first_bad = bad;
-    rejected += rej;
   }
+  const int64_t first_bad = bad != std::numeric_limits<int64_t>::max() ? bad : -1;
   if (first_bad >= 0) {
     auto e = at::zeros({0}, opts);
     return {e, e, e, at::zeros({0}, at::kInt), e, e, e, at::zeros({0}, at::kLong), at::zeros({1}, at::kLong),
@@ -1267,7 +1328,7 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
 
 template <typename S>
 std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& groups, int64_t N,
-                                            const double center[3], const Moved& mv, const Camera& cam,
+                                            const double center[3], const std::vector<Segment>& segs, const Camera& cam,
                                             double near, double far,
                                             double eps2d, const at::Tensor& rec, const at::Tensor& col,
                                             const at::Tensor& gidx, const at::Tensor& offsets, const at::Tensor& ids,
@@ -1318,19 +1379,21 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
   std::vector<int64_t> slot(N, -1);
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int64_t m = 0; m < M; ++m) slot[gi[m]] = m;  // gi is a permutation: no two writes collide
-  // Gradients of the move (Moved): per chunk of rows [sum g_mean x^T (9), sum g_mean (3),
-  // sum dL/dqa (4)], summed over the chunks in order afterwards, so the result does not
-  // depend on which thread took which chunk.
-  constexpr int64_t CHUNK = 1024;
-  std::vector<int64_t> chunk_start(NG + 1, 0);
-  for (size_t g = 0; g < NG; ++g) chunk_start[g + 1] = chunk_start[g] + (groups[g].n + CHUNK - 1) / CHUNK;
-  std::vector<double> move_sums(mv.on ? 16 * chunk_start[NG] : 0, 0.0);
-  for (size_t g = 0; g < NG; ++g) {
-    const RawGroup<S>& G = groups[g];
-    // Dynamic chunks of rows, as in forward_gaussians_impl (no result depends on them).
+  // Gradients of each segment's move (Moved): per chunk of rows [sum g_mean x^T (9), sum
+  // g_mean (3), sum dL/dqa (4)], summed over each segment's chunks in order afterwards, so
+  // the result does not depend on which thread took which chunk.
+  const std::vector<Chunk> chunks = make_chunks(segs);
+  bool any_move = false;
+  for (const Segment& sg : segs) any_move = any_move || sg.mv.on;
+  std::vector<double> move_sums(any_move ? 16 * chunks.size() : 0, 0.0);
+  // Dynamic chunks of rows, as in forward_gaussians_impl (no result depends on them).
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
-    for (int64_t c = 0; c < (G.n + CHUNK - 1) / CHUNK; ++c)
-    for (int64_t i = c * CHUNK; i < std::min(G.n, (c + 1) * CHUNK); ++i) {
+  for (size_t ci = 0; ci < chunks.size(); ++ci) {
+    const Segment& sg = segs[chunks[ci].seg];
+    const Moved& mv = sg.mv;
+    const size_t g = size_t(sg.group);
+    const RawGroup<S>& G = groups[g];
+    for (int64_t i = chunks[ci].begin; i < chunks[ci].end; ++i) {
       const int64_t k = G.start + i;
       const int64_t m = slot[k];
       // Records are in depth order, rows in row order: fetch a later row's sums ahead, the
@@ -1356,11 +1419,11 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
       const S *mp = G.means + 3 * i, *qp = G.quats + 4 * i, *sp = G.scales + 3 * i;
       const S sc[3] = {std::exp(sp[0]), std::exp(sp[1]), std::exp(sp[2])};
       Proj p;
-      project_one(mp, qp, sc, cam, near, far, eps2d, p);
+      project_one(mp, qp, sc, sg.cam, near, far, eps2d, p);
       const double gconic[3] = {s[G_CA], s[G_CB], s[G_CC]};
       const double gm2[2] = {s[G_MX], s[G_MY]};
       double gmean[3], gquat[4], gscale[3];
-      project_backward_one(p, cam, gconic, gm2, s[G_Z], gmean, gquat, gscale);
+      project_backward_one(p, sg.cam, gconic, gm2, s[G_Z], gmean, gquat, gscale);
       for (int j = 0; j < 3; ++j) {
         gm[g][3 * i + j] = S(gmean[j]);
         gs[g][3 * i + j] = S(gscale[j] * double(sc[j]));  // d exp(x) / dx = exp(x)
@@ -1370,7 +1433,7 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
       go[g][i] = S(s[G_OP] * o * (1.0 - o));
       S d[3], b[16];
       if (mv.on) {
-        double* ms = move_sums.data() + 16 * (chunk_start[g] + c);
+        double* ms = move_sums.data() + 16 * ci;
         const double q[4] = {double(qp[0]), double(qp[1]), double(qp[2]), double(qp[3])};
         double gqa[4];
         qa_gradient(mv.qa, q, gquat, gqa);
@@ -1393,11 +1456,11 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
     }
   }
   out.push_back(absgrad);
-  if (mv.on) {  // [sum_rows g_mean x^T (3x3 row-major), sum_rows g_mean (3), dL/dqa (4)], unmoved frame
-    auto sums = at::zeros({16}, at::kDouble);
+  if (any_move) {  // per segment [sum_rows g_mean x^T (3x3 row-major), sum_rows g_mean (3), dL/dqa (4)], unmoved frame
+    auto sums = at::zeros({int64_t(segs.size()), 16}, at::kDouble);
     double* sp = sums.data_ptr<double>();
-    for (int64_t c = 0; c < chunk_start[NG]; ++c)
-      for (int j = 0; j < 16; ++j) sp[j] += move_sums[16 * c + j];
+    for (size_t ci = 0; ci < chunks.size(); ++ci)
+      for (int j = 0; j < 16; ++j) sp[16 * chunks[ci].seg + j] += move_sums[16 * ci + j];
     out.push_back(sums);
   }
   return out;
@@ -1484,7 +1547,8 @@ std::vector<at::Tensor> raster_backward(at::Tensor means, at::Tensor quats, at::
 // contiguous. Returns [acc (H,W,3), depth numerator (H,W), alpha (H,W), radii (N,) int32,
 // means2d (N,2), records (M,REC), colours (M,3), drawn rows (M,) int64, tile offsets, tile ids,
 // first non-finite row (1,) or -1 (then nothing else is computed), Gaussians not culled (1,)].
-// ``moved``: see Moved; ``viewmat`` is then the recorded camera's composed with the move.
+// ``seg_rows``, ``moves``, ``move_on``: the rows' moves (make_segments); ``viewmat`` is the
+// recorded camera's.
 static void check_groups(const std::vector<at::Tensor>& means, const std::vector<at::Tensor>& quats,
                          const std::vector<at::Tensor>& scales, const std::vector<at::Tensor>& opac,
                          const std::vector<at::Tensor>& sh0, const std::vector<at::Tensor>& shN, at::ScalarType st) {
@@ -1509,9 +1573,10 @@ static void check_groups(const std::vector<at::Tensor>& means, const std::vector
 std::vector<at::Tensor> raster_forward_train(std::vector<at::Tensor> means, std::vector<at::Tensor> quats,
                                              std::vector<at::Tensor> scales, std::vector<at::Tensor> opac,
                                              std::vector<at::Tensor> sh0, std::vector<at::Tensor> shN,
-                                             int64_t sh_degree, at::Tensor center, at::Tensor moved,
-                                             at::Tensor viewmat, at::Tensor K, int64_t width, int64_t height,
-                                             double near, double far, double eps2d, bool cull, int64_t nthreads) {
+                                             int64_t sh_degree, at::Tensor center, at::Tensor seg_rows,
+                                             at::Tensor moves, at::Tensor move_on, at::Tensor viewmat, at::Tensor K,
+                                             int64_t width, int64_t height, double near, double far, double eps2d,
+                                             bool cull, int64_t nthreads) {
   TORCH_CHECK(!means.empty(), "at least one group");
   const auto st = means[0].scalar_type();
   TORCH_CHECK(st == at::kFloat || st == at::kDouble, "float32 or float64 Gaussians");
@@ -1519,23 +1584,28 @@ std::vector<at::Tensor> raster_forward_train(std::vector<at::Tensor> means, std:
   auto c = center.detach().to(at::kCPU, at::kDouble).contiguous();
   const double ctr[3] = {c.data_ptr<double>()[0], c.data_ptr<double>()[1], c.data_ptr<double>()[2]};
   const Camera cam = make_camera(viewmat, K, int(width), int(height));
+  std::vector<int64_t> group_rows;
+  for (const auto& m : means) group_rows.push_back(m.size(0));
+  const std::vector<Segment> segs = make_segments(group_rows, seg_rows, moves, move_on, cam);
   int64_t N = 0;
   for (const auto& m : means) N += m.size(0);
   const int nt = clamp_threads(nthreads);
   if (st == at::kFloat)
     return forward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
-                                     make_moved(moved), cam, near, far, eps2d, cull, st, nt);
+                                     segs, cam, near, far, eps2d, cull, st, nt);
   return forward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
-                                    make_moved(moved), cam, near, far, eps2d, cull, st, nt);
+                                    segs, cam, near, far, eps2d, cull, st, nt);
 }
 
 // Returns per group [g_means, g_quats, g_log_scales, g_opacity_logits, g_sh0, g_shN] (the
-// groups' shapes), then absgrad2d (N,2), then with a move (see Moved) its sums (16,) float64.
+// groups' shapes), then absgrad2d (N,2), then when any segment is moved the sums (S,16)
+// float64 of every segment's move gradient (see backward_train_impl).
 std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std::vector<at::Tensor> quats,
                                               std::vector<at::Tensor> scales, std::vector<at::Tensor> opac,
                                               std::vector<at::Tensor> sh0, std::vector<at::Tensor> shN,
-                                              int64_t sh_degree, at::Tensor center, at::Tensor moved,
-                                              at::Tensor viewmat, at::Tensor K, int64_t width, int64_t height,
+                                              int64_t sh_degree, at::Tensor center, at::Tensor seg_rows,
+                                              at::Tensor moves, at::Tensor move_on, at::Tensor viewmat, at::Tensor K,
+                                              int64_t width, int64_t height,
                                               double near, double far, double eps2d, at::Tensor rec, at::Tensor col, at::Tensor gidx, at::Tensor offsets,
                                               at::Tensor ids, at::Tensor acc, at::Tensor dn, at::Tensor aa,
                                               at::Tensor g_acc, at::Tensor g_dn, at::Tensor g_a, int64_t nthreads) {
@@ -1547,15 +1617,18 @@ std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std
   auto c = center.detach().to(at::kCPU, at::kDouble).contiguous();
   const double ctr[3] = {c.data_ptr<double>()[0], c.data_ptr<double>()[1], c.data_ptr<double>()[2]};
   const Camera cam = make_camera(viewmat, K, int(width), int(height));
+  std::vector<int64_t> group_rows;
+  for (const auto& m : means) group_rows.push_back(m.size(0));
+  const std::vector<Segment> segs = make_segments(group_rows, seg_rows, moves, move_on, cam);
   int64_t N = 0;
   for (const auto& m : means) N += m.size(0);
   const int nt = clamp_threads(nthreads);
   if (st == at::kFloat)
     return backward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
-                                      make_moved(moved), cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
+                                      segs, cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
                                       g_a, st, nt);
   return backward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
-                                     make_moved(moved), cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
+                                     segs, cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
                                      g_a, st, nt);
 }
 
