@@ -171,3 +171,35 @@ def test_background_init_drops_the_recording_vehicles_own_lidar_returns(tmp_path
     assert len(kept) == sum(len(p) for p in scene_pts.values())  # the scene's own points all stay
     everything = lidar_points_for_init(scene, np.array(frames), [], ego_clearance=0.0)
     assert len(everything) == len(kept) + 40 * len(frames)
+
+
+def test_rotmat_to_quat_matches_kornia_on_every_branch_with_gradients():
+    """The lean Shepperd conversion gives kornia's quaternions (sign made w >= 0) and their
+    gradients, on rotations that take each of the four branches."""
+    from kornia.geometry.conversions import rotation_matrix_to_quaternion
+
+    from omnire.geometry import axis_angle_to_rotmat
+
+    g = torch.Generator().manual_seed(4)
+    axes = torch.nn.functional.normalize(torch.randn(400, 3, generator=g, dtype=torch.float64), dim=-1)
+    angles = torch.rand(400, 1, generator=g, dtype=torch.float64) * np.pi
+    angles[:100] = np.pi - 1e-3 * angles[:100]  # near half turns: trace near -1, the x/y/z branches
+    special = torch.tensor([[np.pi, 0, 0], [0, np.pi, 0], [0, 0, np.pi], [0, 0, 0], [1e-9, 0, 0]], dtype=torch.float64)
+    R = axis_angle_to_rotmat(torch.cat([axes * angles, special])).requires_grad_(True)
+    ref_R = R.detach().clone().requires_grad_(True)
+    diag = torch.diagonal(R.detach(), dim1=-2, dim2=-1)
+    branches = torch.where(diag.sum(-1) > 0, 0, 1 + diag.argmax(-1))
+    assert set(branches.tolist()) == {0, 1, 2, 3}
+    q = rotmat_to_quat(R)
+    ref = rotation_matrix_to_quaternion(ref_R)
+    ref = torch.where(ref[:, :1] < 0, -ref, ref)
+    torch.testing.assert_close(q, ref, rtol=0, atol=1e-14)
+    w = torch.randn(q.shape, generator=g, dtype=torch.float64)
+    (q * w).sum().backward()
+    (ref * w).sum().backward()
+    torch.testing.assert_close(R.grad, ref_R.grad, rtol=1e-10, atol=1e-12)
+    assert torch.autograd.gradcheck(rotmat_to_quat, (R.detach()[:8].clone().requires_grad_(True),))
+    # numpy in, numpy out; batch shape kept; NaN passes through
+    assert rotmat_to_quat(np.eye(3)).tolist() == [1.0, 0.0, 0.0, 0.0]
+    assert rotmat_to_quat(R.detach().reshape(5, 81, 3, 3)).shape == (5, 81, 4)
+    assert bool(torch.isnan(rotmat_to_quat(torch.full((3, 3), float("nan")))).all())
