@@ -1247,16 +1247,19 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       const S *mp = G.means + 3 * i, *qp = G.quats + 4 * i, *sp = G.scales + 3 * i;
       radp[k] = 0;
       m2p[2 * k] = m2p[2 * k + 1] = S(0);
-      bool finite = std::isfinite(double(G.opac[i]));
-      for (int j = 0; j < 3; ++j) finite = finite && std::isfinite(double(mp[j])) && std::isfinite(double(sp[j]));
-      for (int j = 0; j < 4; ++j) finite = finite && std::isfinite(double(qp[j]));
-      for (int j = 0; j < 3; ++j) finite = finite && std::isfinite(double(G.sh0[3 * i + j]));
-      if (!finite) { bad = std::min(bad, k); continue; }
-      const S sc[3] = {std::exp(sp[0]), std::exp(sp[1]), std::exp(sp[2])};
-      if (cull && off_screen(mp, double(std::max({sc[0], sc[1], sc[2]})), sg.cam, near, far, eps2d)) {
+      // every value finite <=> their sum in double is (14 floats cannot overflow a double;
+      // an infinity or NaN makes the sum infinite or NaN)
+      double sum = double(G.opac[i]);
+      for (int j = 0; j < 3; ++j) sum += double(mp[j]) + double(sp[j]) + double(G.sh0[3 * i + j]);
+      for (int j = 0; j < 4; ++j) sum += double(qp[j]);
+      if (!std::isfinite(sum)) { bad = std::min(bad, k); continue; }
+      // exp is increasing: the largest scale is the exp of the largest log-scale, and the
+      // three scales are only needed for Gaussians that pass the culling
+      if (cull && off_screen(mp, double(std::exp(std::max({sp[0], sp[1], sp[2]}))), sg.cam, near, far, eps2d)) {
         ++rejected;
         continue;
       }
+      const S sc[3] = {std::exp(sp[0]), std::exp(sp[1]), std::exp(sp[2])};
       Proj p;
       project_one(mp, qp, sc, sg.cam, near, far, eps2d, p);
       if (p.in_depth) { m2p[2 * k] = S(p.m2d[0]); m2p[2 * k + 1] = S(p.m2d[1]); }
