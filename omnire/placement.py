@@ -1,51 +1,91 @@
 """Box-local Gaussians placed in the world by per-instance poses.
 
 An actor node's Gaussians live in their boxes; a frame places each present instance's
-rows by its box pose. :class:`Placement` holds those poses for rows grouped by instance;
-:meth:`Placement.apply` gives the world Gaussians (one matrix product per instance), and a
-rasterizer that can draw rows under a per-segment move (the cpu rasterizer's training path,
-``rasterize_gaussians_train(..., placements=...)``) takes the box-local rows and the poses
-instead, so no world copy is made (:class:`omnire.nodes.base.NodeOutput` computes one only
-when something reads it).
+rows by its box pose. :class:`Placement` holds those poses, one per segment of rows (an
+instance); :meth:`Placement.apply` gives the world Gaussians (one matrix product per
+instance). A rasterizer that draws rows under a per-segment move (the cpu rasterizer's
+training path, ``rasterize_gaussians_train(..., placements=...)``) takes the box-local rows
+and the poses instead, so no world copy is made (:class:`omnire.nodes.base.NodeOutput`
+computes one only when something reads it); with ``Placement.starts`` it reads a node's
+parameters in place, so not even the present instances' rows are gathered.
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
+from typing import Optional
 
 import torch
 
-from omnire.gaussians import Gaussians
+from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 from omnire.geometry import quat_left_matrix, rotmat_to_quat
+from omnire.rowsparse import gather_rows
 
 
 @dataclasses.dataclass(frozen=True)
 class Placement:
-    """Rows in consecutive segments, segment p (``lengths[p]`` rows) placed by
-    x -> R[p] x + t[p], quaternions q -> quat(R[p]) q.
+    """Rows in segments, segment p (``lengths[p]`` rows) placed by x -> R[p] x + t[p],
+    quaternions q -> quat(R[p]) q.
 
     Attributes:
         lengths: (P) python ints, the rows of each segment (zero allowed).
         R: (P, 3, 3) rotations; t: (P, 3) translations (gradients reach both).
+        starts: (P) python ints, where each segment's rows start in the Gaussians placed,
+            increasing and not overlapping: those Gaussians are then a node's own parameters
+            (other rows too, which are not drawn and get no gradient), so nothing is copied
+            (:meth:`apply` gathers the rows with row-sparse gradients). None: the segments
+            are the Gaussians' rows in order.
     """
 
     lengths: list[int]
     R: torch.Tensor
     t: torch.Tensor
+    starts: Optional[list[int]] = None
 
     def __post_init__(self) -> None:
         P = len(self.lengths)
         if self.R.shape != (P, 3, 3) or self.t.shape != (P, 3) or any(n < 0 for n in self.lengths):
             raise ValueError(f"Placement: {P} segment lengths need R ({P}, 3, 3) and t ({P}, 3), got "
                              f"{tuple(self.R.shape)} and {tuple(self.t.shape)}")
+        if self.starts is not None:
+            if len(self.starts) != P:
+                raise ValueError(f"Placement: {len(self.starts)} starts for {P} segments")
+            ends = [s + n for s, n in zip(self.starts, self.lengths)]
+            if any(s < 0 for s in self.starts) or any(b < a for a, b in zip(ends, self.starts[1:])):
+                raise ValueError("Placement: segment starts must be non-negative, increasing and not overlapping")
 
     @property
     def num_rows(self) -> int:
+        """Rows drawn (the segments' total)."""
         return sum(self.lengths)
 
+    @functools.cached_property
+    def rows(self) -> Optional[torch.Tensor]:
+        """(num_rows,) increasing rows of the segments in the Gaussians placed (``starts``
+        given), else None."""
+        if self.starts is None:
+            return None
+        device = self.R.device
+        lengths = torch.tensor(self.lengths, dtype=torch.long, device=device)
+        starts = torch.tensor(self.starts, dtype=torch.long, device=device)
+        seg = torch.repeat_interleave(torch.arange(len(self.lengths), device=device), lengths)
+        # row k = its segment's start + (k - the first output index of its segment)
+        return starts[seg] + torch.arange(self.num_rows, device=device) - (torch.cumsum(lengths, 0) - lengths)[seg]
+
+    def check_source(self, num_gaussians: int) -> None:
+        """Raise ValueError unless Gaussians of ``num_gaussians`` rows can be placed."""
+        if self.starts is None:
+            if num_gaussians != self.num_rows:
+                raise ValueError(f"Placement: {num_gaussians} Gaussians, the segments hold {self.num_rows} rows")
+        elif self.starts and self.starts[-1] + self.lengths[-1] > num_gaussians:
+            raise ValueError(f"Placement: segments reach row {self.starts[-1] + self.lengths[-1]} of "
+                             f"{num_gaussians} Gaussians")
+
     def apply(self, g: Gaussians) -> Gaussians:
-        """World Gaussians of the box-local ``g`` (num_rows of them)."""
-        if len(g) != self.num_rows:
-            raise ValueError(f"Placement.apply: {len(g)} Gaussians, the segments hold {self.num_rows} rows")
+        """World Gaussians (num_rows) of the segments' rows of box-local ``g``."""
+        self.check_source(len(g))
+        if self.rows is not None:
+            g = Gaussians(*(gather_rows(getattr(g, k), self.rows) for k in GAUSSIAN_KEYS))
         L = quat_left_matrix(rotmat_to_quat(self.R))  # (P, 4, 4): quat_multiply(q, b) == L @ b
         means, quats = _SegmentTransform.apply(g.means.contiguous(), g.quats.contiguous(), self.R, self.t, L,
                                                self.lengths)

@@ -285,6 +285,18 @@ class ActorNode(GaussianNode):
         rows = segment_rows(self.instance_offsets(), ids)
         return Gaussians(*(gather_rows(self.gaussian_params[k], rows) for k in GAUSSIAN_KEYS)), rows
 
+    def placed_params(self, state: ActorState, time: SceneTime, extras: Optional[dict] = None) -> NodeOutput:
+        """The node's box-local parameters placed by ``state`` (the actors ``state.ids`` at
+        their poses), with nothing gathered: the placement's segments start at each actor's
+        rows (:attr:`Placement.starts`), so a rasterizer that draws placed rows reads the
+        parameters in place, and its gradients reach them row-sparse (only these rows). For
+        nodes whose parameters are their box-local Gaussians as drawn (rigid actors)."""
+        offsets = self.instance_offsets()
+        starts, ends = offsets[state.ids], offsets[state.ids + 1]
+        placement = Placement((ends - starts).tolist(), state.R, state.t, starts=starts.tolist())
+        params = Gaussians(*(self.gaussian_params[k] for k in GAUSSIAN_KEYS))
+        return NodeOutput.placed(params, placement, placement.rows, time, extras)
+
     def row_order(self) -> Optional[torch.Tensor]:
         instance = self.gaussian_buffers["instance"]
         return None if rows_grouped(instance) else torch.sort(instance, stable=True).indices

@@ -64,10 +64,10 @@ class NodeOutput:
         time: the moment rendered.
         extras: node-specific tensors its :meth:`Node.regularization` needs (e.g. deformed
             box-local means); nothing else reads them.
-        local, placement: a placed output's box-local Gaussians and the per-instance poses
-            that put them in the world (:class:`~omnire.placement.Placement`); None for
-            others. A rasterizer that draws placed rows itself takes these and no world copy
-            is made.
+        local, placement: a placed output's box-local Gaussians (the node's own parameters
+            when ``placement.starts`` picks their rows) and the per-instance poses that put
+            them in the world (:class:`~omnire.placement.Placement`); None for others. A
+            rasterizer that draws placed rows itself takes these and no copy is made.
     """
 
     def __init__(self, gaussians: Gaussians, rows: Optional[torch.Tensor], time: SceneTime,
@@ -83,8 +83,7 @@ class NodeOutput:
     def placed(cls, local: Gaussians, placement: Placement, rows: Optional[torch.Tensor], time: SceneTime,
                extras: Optional[dict[str, Any]] = None) -> "NodeOutput":
         """An output of box-local Gaussians ``local`` put in the world by ``placement``."""
-        if len(local) != placement.num_rows:
-            raise ValueError(f"NodeOutput.placed: {len(local)} Gaussians, the placement holds {placement.num_rows} rows")
+        placement.check_source(len(local))
         out = cls(None, rows, time, extras)  # type: ignore[arg-type]
         out.local, out.placement = local, placement
         return out
@@ -97,7 +96,7 @@ class NodeOutput:
 
     @property
     def num_gaussians(self) -> int:
-        return len(self.local) if self._gaussians is None else len(self._gaussians)
+        return self.placement.num_rows if self._gaussians is None else len(self._gaussians)
 
     def with_gaussians(self, gaussians: Gaussians) -> "NodeOutput":
         """The same output with world Gaussians ``gaussians`` (e.g. moved) in place of its own."""

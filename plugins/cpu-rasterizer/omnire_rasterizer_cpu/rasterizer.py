@@ -98,9 +98,10 @@ def row_moves(parts: list[Gaussians], moved: Optional[tuple[torch.Tensor, torch.
             else:
                 R, t, q = R_m[None], t_m[None], q_m[None]
         else:
-            if placement.num_rows != len(part):
-                raise RasterInputError(f"placements: a placement of {placement.num_rows} rows for a part of "
-                                       f"{len(part)} Gaussians")
+            try:
+                placement.check_source(len(part))
+            except ValueError as exc:
+                raise RasterInputError(f"placements: {exc}") from None
             rows.extend(placement.lengths)
             on.extend([True] * len(placement.lengths))
             R, t = placement.R.to(dtype), placement.t.to(dtype)
@@ -113,24 +114,46 @@ def row_moves(parts: list[Gaussians], moved: Optional[tuple[torch.Tensor, torch.
     return (rows, on), torch.cat(Rs), torch.cat(ts), torch.cat(qs)
 
 
+def kernel_groups(tensors: tuple[torch.Tensor, ...], picks: list[Optional[tuple]]
+                  ) -> tuple[list[list[torch.Tensor]], torch.Tensor]:
+    """The kernel's groups (6 lists, one tensor per group each) and the block of each group:
+    a part is one group, a part with picked rows one group per segment (row slices of its
+    tensors, no copy), all in the part's block (one gradient tensor per parameter)."""
+    groups: list[list[torch.Tensor]] = [[] for _ in range(6)]
+    blocks: list[int] = []
+    for i, pick in enumerate(picks):
+        part = tensors[6 * i: 6 * i + 6]
+        if pick is None:
+            slices = [part]
+        else:
+            slices = [[x.detach().narrow(0, s, n) for x in part] for s, n in zip(pick[0], pick[1])]
+        for sl in slices:
+            for k in range(6):
+                groups[k].append(sl[k])
+            blocks.append(i)
+    return groups, torch.tensor(blocks, dtype=torch.int64)
+
+
 class _RasterizeGaussiansFn(torch.autograd.Function):
     """Training path from raw Gaussians in G groups (node outputs, not concatenated).
 
     Inputs: ``meta`` (non-tensor settings, see :meth:`CpuRasterizer.rasterize_gaussians_train`),
-    ``absgrad`` (N, 2) buffer the backward adds AbsGrad into, ``segments`` (row counts (S)
-    of consecutive segments of the groups' rows, and whether each is moved; None: nothing
-    moved) with the segments' moves x -> R x + t (rotations R (S,3,3), translations t (S,3),
-    R's quaternions qa (S,4); None without segments), then 6 tensors per group: means (n,3),
+    ``absgrad`` (N, 2) buffer the backward adds AbsGrad into, ``picks`` (per part None, or the
+    rows it draws: (starts (P), lengths (P), rows (M,) long) of segments of its rows, drawn in
+    place, whose gradients are returned row-sparse), ``segments`` (row counts (S) of
+    consecutive segments of the drawn rows, and whether each is moved; None: nothing moved)
+    with the segments' moves x -> R x + t (rotations R (S,3,3), translations t (S,3), R's
+    quaternions qa (S,4); None without segments), then 6 tensors per part: means (n,3),
     quats (n,4), log-scales (n,3), opacity logits (n,), sh0 (n,1,3), shN (n,K,3).
     Outputs: acc (H,W,3), depth numerator (H,W), alpha (H,W), radii (N,) int32, means2d (N,2),
     Gaussians not rejected (1,) int64 (the last three carry no gradient). Gradients reach every raw tensor of every group.
     """
 
     @staticmethod
-    def forward(ctx, meta, absgrad, segments, R, t, qa, *tensors):
+    def forward(ctx, meta, absgrad, picks, segments, R, t, qa, *tensors):
         sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads = meta
         G = len(tensors) // 6
-        groups = [list(tensors[k::6]) for k in range(6)]
+        groups, blocks = kernel_groups(tensors, picks)
         # x -> R x + t per segment: the kernel draws each through the view matrix composed with its move
         seg_rows = torch.zeros(0, dtype=torch.int64)
         moves = torch.zeros(0, 16, dtype=torch.float64)
@@ -150,6 +173,7 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
         ctx.meta = (sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads)
         ctx.absgrad = absgrad
         ctx.num_groups = G
+        ctx.picks = picks
         ctx.save_for_backward(*tensors, rec, col, gidx, offsets, ids, acc, dn, alpha)
         ctx.mark_non_differentiable(radii, means2d, kept)
         return acc, dn, alpha, radii, means2d, kept
@@ -161,7 +185,7 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
         G = ctx.num_groups
         tensors = saved[: 6 * G]
         rec, col, gidx, offsets, ids, acc, dn, alpha = saved[6 * G:]
-        groups = [list(tensors[k::6]) for k in range(6)]
+        groups, blocks = kernel_groups(tensors, ctx.picks)
 
         def grad_or_zeros(g, like):
             return torch.zeros_like(like) if g is None else g.contiguous().to(like.dtype)
@@ -170,7 +194,7 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
         grads = _ext().backward_train(
             *groups, sh_degree, center, seg_rows, moves, move_on, viewmat, K, width, height, near, far, eps2d,
             rec, col, gidx, offsets, ids, acc, dn, alpha,
-            grad_or_zeros(g_acc, acc), grad_or_zeros(g_dn, dn), grad_or_zeros(g_alpha, alpha), nthreads)
+            grad_or_zeros(g_acc, acc), grad_or_zeros(g_dn, dn), grad_or_zeros(g_alpha, alpha), blocks, nthreads)
         g_R = g_t = g_qa = None
         if bool(move_on.any()):
             # per segment, sums over its rows in the unmoved frame: the moved means' gradient is R g_mean
@@ -180,7 +204,17 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
             g_t = (R @ sums[:, 9:12, None])[..., 0].to(ctx.move_rotation.dtype)
             g_qa = sums[:, 12:].to(ctx.move_rotation.dtype)
         ctx.absgrad.add_(grads[-1].to(ctx.absgrad.dtype))
-        return (None, None, None, g_R, g_t, g_qa, *grads[:-1])
+        grads = grads[:-1]
+        for i, pick in enumerate(ctx.picks):
+            if pick is None:
+                continue
+            rows = pick[2]
+            for k in range(6):  # the picked rows' gradients, row-sparse as omnire.rowsparse.gather_rows gives them
+                g, source = grads[6 * i + k], tensors[6 * i + k]
+                if g is not None:
+                    grads[6 * i + k] = torch.sparse_coo_tensor(rows[None], g, source.shape, is_coalesced=True,
+                                                               check_invariants=False)
+        return (None, None, None, None, g_R, g_t, g_qa, *grads)
 
 
 class CpuRasterizer:
@@ -298,8 +332,10 @@ class CpuRasterizer:
         ``placements`` (one per part, None for a part in the world): a part with a
         :class:`~omnire.placement.Placement` holds box-local rows, drawn placed by their
         segments' poses (after them ``moved``, if given) without a world copy; the poses get
-        their gradients the same way. Same pixels and gradients as drawing
-        ``placement.apply(part)``, up to float rounding."""
+        their gradients the same way. A placement with ``starts`` draws those rows of the part
+        (e.g. a node's parameters) in place, and the part's gradients are row-sparse over them.
+        Same pixels and gradients as drawing ``placement.apply(part)``, up to float rounding;
+        ``radii`` and ``absgrad2d`` then index the drawn rows."""
         if not parts:
             raise RasterInputError("rasterize_gaussians_train: no parts")
         if camera.device.type != "cpu" or any(p.means.device.type != "cpu" for p in parts):
@@ -317,7 +353,9 @@ class CpuRasterizer:
         # so no gradient (not even zeros, which an optimiser would count as a step) reaches it
         tensors = [(t.detach() if k == "shN" and min(int(sh_degree), p.sh_degree) == 0 else t).to(dtype).contiguous()
                    for p in parts for k, t in zip(GAUSSIAN_KEYS, (getattr(p, k) for k in GAUSSIAN_KEYS))]
-        N = sum(len(p) for p in parts)
+        picks = [None if pl is None or pl.starts is None else (pl.starts, pl.lengths, pl.rows)
+                 for pl in (placements or [None] * len(parts))]
+        N = sum(len(p) if pick is None else len(pick[2]) for p, pick in zip(parts, picks))
         absgrad = torch.zeros(N, 2, dtype=dtype)
         meta = (int(sh_degree), camera.center.detach().to(torch.float64).contiguous(),
                 camera.world_to_cam.detach().to(torch.float64).contiguous(),
@@ -325,7 +363,8 @@ class CpuRasterizer:
                 float(settings.near), float(settings.far), float(settings.eps2d), bool(cull),
                 int(self.num_threads or torch.get_num_threads()))
         segments, R, t, qa = row_moves(parts, moved, placements, dtype)
-        acc, dn, alpha, radii, means2d, kept = _RasterizeGaussiansFn.apply(meta, absgrad, segments, R, t, qa, *tensors)
+        acc, dn, alpha, radii, means2d, kept = _RasterizeGaussiansFn.apply(meta, absgrad, picks, segments, R, t, qa,
+                                                                           *tensors)
         rgb = acc
         if settings.background is not None:
             rgb = acc + (1.0 - alpha)[..., None] * settings.background.to(dtype)

@@ -377,5 +377,57 @@ def test_placements_are_checked():
     with pytest.raises(RasterInputError, match="one per part"):
         rast.rasterize_gaussians_train(parts, camera, 1, placements=[None])
     wrong = [Placement([5, 10], eye, torch.zeros(2, 3))] + [None] * (len(parts) - 1)
-    with pytest.raises(RasterInputError, match="placement of 15 rows for a part of 20"):
+    with pytest.raises(RasterInputError, match="20 Gaussians, the segments hold 15 rows"):
         rast.rasterize_gaussians_train(parts, camera, 1, placements=wrong)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_placement_starts_draw_picked_rows_in_place(dtype):
+    """A placement with ``starts`` draws those rows of a part in place (e.g. a node's
+    parameters, no gathered copy): the pixels, radii and AbsGrad of drawing the gathered rows,
+    and the same gradients, row-sparse over the picked rows (other rows get none)."""
+    from omnire.geometry import axis_angle_to_rotmat
+    from omnire.placement import Placement
+    from omnire.rowsparse import gather_rows
+
+    parts, camera = raw_parts(7, dtype)
+    local, rot0, trans0 = placed_inputs(parts, 3, dtype, lengths=(40, 0, 60, 50))
+    source = local[0]  # 150 rows; pick 3 segments of it, with rows left out between them
+    starts, lengths = [5, 50, 60, 120], [30, 0, 45, 25]
+    rows = torch.cat([torch.arange(s, s + n) for s, n in zip(starts, lengths)])
+    settings = RasterSettings(background=torch.tensor([0.2, 0.4, 0.6], dtype=dtype))
+    rast = CpuRasterizer(num_threads=2)
+    outs = {}
+    for in_place in (True, False):
+        ins = leaves([source, local[1]])
+        rot, trans = rot0.clone().requires_grad_(True), trans0.clone().requires_grad_(True)
+        R = axis_angle_to_rotmat(rot)
+        if in_place:
+            parts_in = ins
+            placement = Placement(lengths, R, trans, starts=starts)
+            assert torch.equal(placement.rows, rows)
+        else:
+            parts_in = [Gaussians(*(gather_rows(getattr(ins[0], k), rows) for k in GAUSSIAN_KEYS)), ins[1]]
+            placement = Placement(lengths, R, trans)
+        moved = (axis_angle_to_rotmat(torch.tensor([0.02, -0.01, 0.03], dtype=dtype)),
+                 torch.tensor([0.1, 0.0, -0.1], dtype=dtype))
+        out, _ = rast.rasterize_gaussians_train(parts_in, camera, 3, settings, moved=moved,
+                                                placements=[placement, None])
+        projection_loss(out).backward()
+        outs[in_place] = (out, ins, rot, trans)
+    (a, a_in, a_rot, a_tr), (b, b_in, b_rot, b_tr) = outs[True], outs[False]
+    assert len(a.radii) == len(rows) + len(local[1]) and int((b.radii[:len(rows)] > 0).sum()) > 30
+    tol = 1e-10 if dtype == torch.float64 else 1e-4
+    for key in ("rgb", "alpha"):
+        assert float((getattr(a, key) - getattr(b, key)).detach().abs().max()) <= tol, key
+    assert torch.equal(a.radii, b.radii)
+    torch.testing.assert_close(a.absgrad2d, b.absgrad2d, rtol=0, atol=tol * float(b.absgrad2d.abs().max()))
+    for pa, pb in zip(a_in, b_in):
+        for k in GAUSSIAN_KEYS:
+            ga, gb = getattr(pa, k).grad, getattr(pb, k).grad
+            assert ga.layout == gb.layout
+            ga, gb = ga.to_dense(), gb.to_dense()
+            assert float((ga - gb).abs().max()) <= tol * max(1.0, float(gb.abs().max())), k
+    assert a_in[0].means.grad.is_sparse and torch.equal(a_in[0].means.grad._indices()[0], rows)
+    for ga, gb in ((a_rot.grad, b_rot.grad), (a_tr.grad, b_tr.grad)):
+        torch.testing.assert_close(ga, gb, rtol=tol * 10, atol=tol * float(gb.abs().max()))

@@ -13,7 +13,7 @@ from typing import Optional
 
 import torch
 
-from omnire.api import ActorState, BoxActorConfig, BoxActorNode, Camera, NodeOutput, SceneTime, placed_output
+from omnire.api import ActorState, BoxActorConfig, BoxActorNode, Camera, NodeOutput, SceneTime
 
 
 @dataclasses.dataclass
@@ -30,8 +30,7 @@ class RigidNode(BoxActorNode):
 
     def gaussians_for(self, state: ActorState, t: SceneTime, camera: Optional[Camera] = None,
                       step: Optional[int] = None) -> Optional[NodeOutput]:
-        g, rows = self.present_gaussians(state.ids)
-        return placed_output(g, self.gaussian_buffers["instance"][rows], state.ids, state.R, state.t, rows, t)
+        return self.placed_params(state, t)
 
     @torch.no_grad()
     def extra_prune_mask(self) -> torch.Tensor:

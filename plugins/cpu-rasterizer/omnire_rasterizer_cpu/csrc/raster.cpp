@@ -1330,8 +1330,9 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
 }
 
 template <typename S>
-std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& groups, int64_t N,
-                                            const double center[3], const std::vector<Segment>& segs, const Camera& cam,
+std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& groups, const std::vector<int64_t>& block,
+                                            int64_t N, const double center[3], const std::vector<Segment>& segs,
+                                            const Camera& cam,
                                             double near, double far,
                                             double eps2d, const at::Tensor& rec, const at::Tensor& col,
                                             const at::Tensor& gidx, const at::Tensor& offsets, const at::Tensor& ids,
@@ -1351,21 +1352,38 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
   // Gaussians.colors, and an optimiser must not see a zero gradient for it); then AbsGrad
   // (N, 2). Every row is written exactly once (zeros where nothing was drawn), so the
   // tensors start uninitialised: no separate memset of the N-row outputs.
+  // Consecutive groups of one block (``block``, non-decreasing; e.g. the segments of one
+  // node's parameters drawn without a copy) write their rows into one set of tensors.
   std::vector<at::Tensor> out;
   const size_t NG = groups.size();
   std::vector<S*> gm(NG), gq(NG), gs(NG), go(NG), g0(NG), gn(NG);
-  for (size_t g = 0; g < NG; ++g) {
-    const int64_t n = groups[g].n;
-    out.push_back(at::empty({n, 3}, opts)); gm[g] = out.back().data_ptr<S>();
-    out.push_back(at::empty({n, 4}, opts)); gq[g] = out.back().data_ptr<S>();
-    out.push_back(at::empty({n, 3}, opts)); gs[g] = out.back().data_ptr<S>();
-    out.push_back(at::empty({n}, opts)); go[g] = out.back().data_ptr<S>();
-    out.push_back(at::empty({n, 1, 3}, opts)); g0[g] = out.back().data_ptr<S>();
-    if (groups[g].deg > 0) {
-      out.push_back(at::empty({n, groups[g].K1, 3}, opts)); gn[g] = out.back().data_ptr<S>();
-    } else {
-      out.push_back(at::Tensor()); gn[g] = nullptr;
+  for (size_t first = 0; first < NG;) {
+    size_t last = first + 1;
+    while (last < NG && block[last] == block[first]) ++last;
+    int64_t n = 0;
+    for (size_t g = first; g < last; ++g) {
+      TORCH_CHECK(groups[g].K1 == groups[first].K1 && groups[g].deg == groups[first].deg,
+                  "groups of one block need one SH layout");
+      n += groups[g].n;
     }
+    const int K1 = groups[first].K1;
+    out.push_back(at::empty({n, 3}, opts)); S* bm = out.back().data_ptr<S>();
+    out.push_back(at::empty({n, 4}, opts)); S* bq = out.back().data_ptr<S>();
+    out.push_back(at::empty({n, 3}, opts)); S* bs = out.back().data_ptr<S>();
+    out.push_back(at::empty({n}, opts)); S* bo = out.back().data_ptr<S>();
+    out.push_back(at::empty({n, 1, 3}, opts)); S* b0 = out.back().data_ptr<S>();
+    S* bn = nullptr;
+    if (groups[first].deg > 0) {
+      out.push_back(at::empty({n, K1, 3}, opts)); bn = out.back().data_ptr<S>();
+    } else {
+      out.push_back(at::Tensor());
+    }
+    int64_t r = 0;  // first row of group g in the block
+    for (size_t g = first; g < last; r += groups[g].n, ++g) {
+      gm[g] = bm + 3 * r; gq[g] = bq + 4 * r; gs[g] = bs + 3 * r; go[g] = bo + r; g0[g] = b0 + 3 * r;
+      gn[g] = bn ? bn + int64_t(K1) * 3 * r : nullptr;
+    }
+    first = last;
   }
   auto absgrad = at::empty({N, 2}, opts);
   S* pa = absgrad.data_ptr<S>();
@@ -1600,9 +1618,10 @@ std::vector<at::Tensor> raster_forward_train(std::vector<at::Tensor> means, std:
                                     segs, cam, near, far, eps2d, cull, st, nt);
 }
 
-// Returns per group [g_means, g_quats, g_log_scales, g_opacity_logits, g_sh0, g_shN] (the
-// groups' shapes), then absgrad2d (N,2), then when any segment is moved the sums (S,16)
-// float64 of every segment's move gradient (see backward_train_impl).
+// Returns per block of groups (``blocks`` (G,) non-decreasing block index per group; empty:
+// every group its own block) [g_means, g_quats, g_log_scales, g_opacity_logits, g_sh0, g_shN]
+// over the block's rows in group order, then absgrad2d (N,2), then when any segment is moved
+// the sums (S,16) float64 of every segment's move gradient (see backward_train_impl).
 std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std::vector<at::Tensor> quats,
                                               std::vector<at::Tensor> scales, std::vector<at::Tensor> opac,
                                               std::vector<at::Tensor> sh0, std::vector<at::Tensor> shN,
@@ -1611,7 +1630,8 @@ std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std
                                               int64_t width, int64_t height,
                                               double near, double far, double eps2d, at::Tensor rec, at::Tensor col, at::Tensor gidx, at::Tensor offsets,
                                               at::Tensor ids, at::Tensor acc, at::Tensor dn, at::Tensor aa,
-                                              at::Tensor g_acc, at::Tensor g_dn, at::Tensor g_a, int64_t nthreads) {
+                                              at::Tensor g_acc, at::Tensor g_dn, at::Tensor g_a, at::Tensor blocks,
+                                              int64_t nthreads) {
   const auto st = means[0].scalar_type();
   check_groups(means, quats, scales, opac, sh0, shN, st);
   for (auto [t, n] : {std::pair{&rec, "rec"}, {&col, "colors"}, {&acc, "acc"}, {&dn, "dn"}, {&aa, "alpha"},
@@ -1623,14 +1643,26 @@ std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std
   std::vector<int64_t> group_rows;
   for (const auto& m : means) group_rows.push_back(m.size(0));
   const std::vector<Segment> segs = make_segments(group_rows, seg_rows, moves, move_on, cam);
+  std::vector<int64_t> block(means.size());
+  if (blocks.numel() == 0) {
+    for (size_t g = 0; g < block.size(); ++g) block[g] = int64_t(g);
+  } else {
+    auto b = blocks.detach().to(at::kCPU, at::kLong).contiguous();
+    TORCH_CHECK(b.numel() == int64_t(block.size()), "blocks: one per group expected, got ", b.numel(), " for ",
+                block.size(), " groups");
+    for (size_t g = 0; g < block.size(); ++g) {
+      block[g] = b.data_ptr<int64_t>()[g];
+      TORCH_CHECK(g == 0 || block[g] >= block[g - 1], "blocks must be non-decreasing");
+    }
+  }
   int64_t N = 0;
   for (const auto& m : means) N += m.size(0);
   const int nt = clamp_threads(nthreads);
   if (st == at::kFloat)
-    return backward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
+    return backward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, int(sh_degree)), block, N, ctr,
                                       segs, cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
                                       g_a, st, nt);
-  return backward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
+  return backward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, int(sh_degree)), block, N, ctr,
                                      segs, cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
                                      g_a, st, nt);
 }
