@@ -1295,6 +1295,7 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
   // tile list then walks the records, and the backward its gradient rows, in increasing
   // address order instead of jumping across the whole array.
   std::vector<float> depth_all(N);
+#pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int64_t k = 0; k < N; ++k) depth_all[k] = radp[k] > 0 ? float(recp[REC * k + 6]) : 0.f;
   std::vector<uint64_t> order = depth_order(N, depth_all.data(), radp);
   const int64_t M = int64_t(order.size());
@@ -1427,12 +1428,18 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
         }
       }
       const int nbN = G.deg > 0 ? G.K1 : 0;  // shN rows written (all of them, bands above deg zero)
-      if (m < 0) {
-        for (int j = 0; j < 3; ++j) gm[g][3 * i + j] = gs[g][3 * i + j] = g0[g][3 * i + j] = S(0);
-        for (int j = 0; j < 4; ++j) gq[g][4 * i + j] = S(0);
-        go[g][i] = S(0);
-        for (int64_t j = 0; j < 3 * int64_t(nbN); ++j) gn[g][3 * int64_t(nbN) * i + j] = S(0);
-        pa[2 * k] = pa[2 * k + 1] = S(0);
+      if (m < 0) {  // a run of rows not drawn: their gradients are 0, written array by array
+        int64_t e = i + 1;
+        while (e < chunks[ci].end && slot[G.start + e] < 0) ++e;
+        const int64_t n = e - i;
+        std::fill_n(gm[g] + 3 * i, 3 * n, S(0));
+        std::fill_n(gs[g] + 3 * i, 3 * n, S(0));
+        std::fill_n(g0[g] + 3 * i, 3 * n, S(0));
+        std::fill_n(gq[g] + 4 * i, 4 * n, S(0));
+        std::fill_n(go[g] + i, n, S(0));
+        if (nbN > 0) std::fill_n(gn[g] + 3 * int64_t(nbN) * i, 3 * int64_t(nbN) * n, S(0));
+        std::fill_n(pa + 2 * k, 2 * n, S(0));
+        i = e - 1;
         continue;
       }
       double s[G_COL + 3];
