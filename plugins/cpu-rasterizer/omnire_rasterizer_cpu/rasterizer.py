@@ -115,23 +115,23 @@ def row_moves(parts: list[Gaussians], moved: Optional[tuple[torch.Tensor, torch.
 
 
 def kernel_groups(tensors: tuple[torch.Tensor, ...], picks: list[Optional[tuple]]
-                  ) -> tuple[list[list[torch.Tensor]], torch.Tensor]:
-    """The kernel's groups (6 lists, one tensor per group each) and the block of each group:
-    a part is one group, a part with picked rows one group per segment (row slices of its
-    tensors, no copy), all in the part's block (one gradient tensor per parameter)."""
+                  ) -> tuple[list[list[torch.Tensor]], torch.Tensor, torch.Tensor]:
+    """The kernel's groups (6 lists, one tensor per group each), the rows of its tensors each
+    group draws ((G, 2): first row, rows) and the block of each group: a part is one group, a
+    part with picked rows one group per segment (its tensors, uncopied, with the segment's
+    rows), all in the part's block (one gradient tensor per parameter)."""
     groups: list[list[torch.Tensor]] = [[] for _ in range(6)]
+    spans: list[tuple[int, int]] = []
     blocks: list[int] = []
     for i, pick in enumerate(picks):
         part = tensors[6 * i: 6 * i + 6]
-        if pick is None:
-            slices = [part]
-        else:
-            slices = [[x.detach().narrow(0, s, n) for x in part] for s, n in zip(pick[0], pick[1])]
-        for sl in slices:
-            for k in range(6):
-                groups[k].append(sl[k])
-            blocks.append(i)
-    return groups, torch.tensor(blocks, dtype=torch.int64)
+        segments = [(0, len(part[0]))] if pick is None else list(zip(pick[0], pick[1]))
+        for k in range(6):
+            groups[k].extend([part[k]] * len(segments))
+        spans.extend(segments)
+        blocks.extend([i] * len(segments))
+    return (groups, torch.tensor(spans, dtype=torch.int64).reshape(-1, 2),
+            torch.tensor(blocks, dtype=torch.int64))
 
 
 class _RasterizeGaussiansFn(torch.autograd.Function):
@@ -153,7 +153,7 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
     def forward(ctx, meta, absgrad, picks, segments, R, t, qa, *tensors):
         sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads = meta
         G = len(tensors) // 6
-        groups, blocks = kernel_groups(tensors, picks)
+        groups, spans, blocks = kernel_groups(tensors, picks)
         # x -> R x + t per segment: the kernel draws each through the view matrix composed with its move
         seg_rows = torch.zeros(0, dtype=torch.int64)
         moves = torch.zeros(0, 16, dtype=torch.float64)
@@ -165,8 +165,8 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
             ctx.move_rotation = R.detach()
         ctx.segments = (seg_rows, moves, move_on)
         (acc, dn, alpha, radii, means2d, rec, col, gidx, offsets, ids, bad, kept) = _ext().forward_train(
-            *groups, sh_degree, center, seg_rows, moves, move_on, viewmat, K, width, height, near, far, eps2d,
-            cull, nthreads)
+            *groups, spans, sh_degree, center, seg_rows, moves, move_on, viewmat, K, width, height, near, far,
+            eps2d, cull, nthreads)
         if int(bad[0]) >= 0:
             raise RasterInputError(f"Gaussian row {int(bad[0])} (of the {G} concatenated parts) has non-finite "
                                    "parameters or colour; refusing to render a NaN image")
@@ -185,15 +185,15 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
         G = ctx.num_groups
         tensors = saved[: 6 * G]
         rec, col, gidx, offsets, ids, acc, dn, alpha = saved[6 * G:]
-        groups, blocks = kernel_groups(tensors, ctx.picks)
+        groups, spans, blocks = kernel_groups(tensors, ctx.picks)
 
         def grad_or_zeros(g, like):
             return torch.zeros_like(like) if g is None else g.contiguous().to(like.dtype)
 
         seg_rows, moves, move_on = ctx.segments
         grads = _ext().backward_train(
-            *groups, sh_degree, center, seg_rows, moves, move_on, viewmat, K, width, height, near, far, eps2d,
-            rec, col, gidx, offsets, ids, acc, dn, alpha,
+            *groups, spans, sh_degree, center, seg_rows, moves, move_on, viewmat, K, width, height, near, far,
+            eps2d, rec, col, gidx, offsets, ids, acc, dn, alpha,
             grad_or_zeros(g_acc, acc), grad_or_zeros(g_dn, dn), grad_or_zeros(g_alpha, alpha), blocks, nthreads)
         g_R = g_t = g_qa = None
         if bool(move_on.any()):

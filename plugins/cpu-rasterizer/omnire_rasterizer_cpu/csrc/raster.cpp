@@ -1194,21 +1194,24 @@ struct RawGroup {
   int K1, deg;
 };
 
+// ``spans``: per group (first row, rows) of its tensors (check_groups).
 template <typename S>
 std::vector<RawGroup<S>> raw_groups(const std::vector<at::Tensor>& means, const std::vector<at::Tensor>& quats,
                                     const std::vector<at::Tensor>& scales, const std::vector<at::Tensor>& opac,
                                     const std::vector<at::Tensor>& sh0, const std::vector<at::Tensor>& shN,
-                                    int sh_degree) {
+                                    const std::vector<std::pair<int64_t, int64_t>>& spans, int sh_degree) {
   std::vector<RawGroup<S>> gs(means.size());
   int64_t start = 0;
   for (size_t g = 0; g < means.size(); ++g) {
     RawGroup<S>& r = gs[g];
-    r.means = means[g].data_ptr<S>(); r.quats = quats[g].data_ptr<S>(); r.scales = scales[g].data_ptr<S>();
-    r.opac = opac[g].data_ptr<S>(); r.sh0 = sh0[g].data_ptr<S>(); r.shN = shN[g].data_ptr<S>();
-    r.n = means[g].size(0);
+    const int64_t f = spans[g].first;
+    r.K1 = int(shN[g].size(1));
+    r.means = means[g].data_ptr<S>() + 3 * f; r.quats = quats[g].data_ptr<S>() + 4 * f;
+    r.scales = scales[g].data_ptr<S>() + 3 * f; r.opac = opac[g].data_ptr<S>() + f;
+    r.sh0 = sh0[g].data_ptr<S>() + 3 * f; r.shN = shN[g].data_ptr<S>() + int64_t(r.K1) * 3 * f;
+    r.n = spans[g].second;
     r.start = start;
     start += r.n;
-    r.K1 = int(shN[g].size(1));
     int deg = 0;
     while ((deg + 1) * (deg + 1) - 1 < r.K1) ++deg;
     r.deg = std::min(deg, sh_degree);
@@ -1577,12 +1580,31 @@ std::vector<at::Tensor> raster_backward(at::Tensor means, at::Tensor quats, at::
 // first non-finite row (1,) or -1 (then nothing else is computed), Gaussians not culled (1,)].
 // ``seg_rows``, ``moves``, ``move_on``: the rows' moves (make_segments); ``viewmat`` is the
 // recorded camera's.
-static void check_groups(const std::vector<at::Tensor>& means, const std::vector<at::Tensor>& quats,
-                         const std::vector<at::Tensor>& scales, const std::vector<at::Tensor>& opac,
-                         const std::vector<at::Tensor>& sh0, const std::vector<at::Tensor>& shN, at::ScalarType st) {
+//
+// ``group_spans`` (G,2) int64: per group, the first row and the number of rows of its tensors
+// it draws (e.g. one actor's rows of a node's parameters, no copy); empty: all rows. Returns
+// the spans.
+static std::vector<std::pair<int64_t, int64_t>> check_groups(
+    const std::vector<at::Tensor>& means, const std::vector<at::Tensor>& quats, const std::vector<at::Tensor>& scales,
+    const std::vector<at::Tensor>& opac, const std::vector<at::Tensor>& sh0, const std::vector<at::Tensor>& shN,
+    const at::Tensor& group_spans, at::ScalarType st) {
   const size_t G = means.size();
   TORCH_CHECK(quats.size() == G && scales.size() == G && opac.size() == G && sh0.size() == G && shN.size() == G,
               "every parameter needs one tensor per group");
+  std::vector<std::pair<int64_t, int64_t>> spans(G);
+  if (group_spans.numel() == 0) {
+    for (size_t g = 0; g < G; ++g) spans[g] = {0, means[g].size(0)};
+  } else {
+    TORCH_CHECK(group_spans.numel() == int64_t(2 * G), "group_spans: (", G, ", 2) expected, got ", group_spans.numel(),
+                " values");
+    auto sp = group_spans.detach().to(at::kCPU, at::kLong).contiguous();
+    for (size_t g = 0; g < G; ++g) {
+      spans[g] = {sp.data_ptr<int64_t>()[2 * g], sp.data_ptr<int64_t>()[2 * g + 1]};
+      TORCH_CHECK(spans[g].first >= 0 && spans[g].second >= 0 && spans[g].first + spans[g].second <= means[g].size(0),
+                  "group ", g, ": rows ", spans[g].first, " + ", spans[g].second, " outside its ", means[g].size(0),
+                  " rows");
+    }
+  }
   for (size_t g = 0; g < G; ++g) {
     const int64_t n = means[g].size(0);
     for (auto [t, name] : {std::pair{&means[g], "means"}, {&quats[g], "quats"}, {&scales[g], "scales"},
@@ -1596,33 +1618,34 @@ static void check_groups(const std::vector<at::Tensor>& means, const std::vector
     TORCH_CHECK(shN[g].dim() == 3 && shN[g].size(2) == 3 && shN[g].size(1) <= 15 && sh0[g].numel() == 3 * n,
                 "sh0 (N,1,3) / shN (N,K,3) with K <= 15");
   }
+  return spans;
 }
 
 std::vector<at::Tensor> raster_forward_train(std::vector<at::Tensor> means, std::vector<at::Tensor> quats,
                                              std::vector<at::Tensor> scales, std::vector<at::Tensor> opac,
                                              std::vector<at::Tensor> sh0, std::vector<at::Tensor> shN,
-                                             int64_t sh_degree, at::Tensor center, at::Tensor seg_rows,
-                                             at::Tensor moves, at::Tensor move_on, at::Tensor viewmat, at::Tensor K,
-                                             int64_t width, int64_t height, double near, double far, double eps2d,
-                                             bool cull, int64_t nthreads) {
+                                             at::Tensor group_spans, int64_t sh_degree, at::Tensor center,
+                                             at::Tensor seg_rows, at::Tensor moves, at::Tensor move_on,
+                                             at::Tensor viewmat, at::Tensor K, int64_t width, int64_t height,
+                                             double near, double far, double eps2d, bool cull, int64_t nthreads) {
   TORCH_CHECK(!means.empty(), "at least one group");
   const auto st = means[0].scalar_type();
   TORCH_CHECK(st == at::kFloat || st == at::kDouble, "float32 or float64 Gaussians");
-  check_groups(means, quats, scales, opac, sh0, shN, st);
+  const auto spans = check_groups(means, quats, scales, opac, sh0, shN, group_spans, st);
   auto c = center.detach().to(at::kCPU, at::kDouble).contiguous();
   const double ctr[3] = {c.data_ptr<double>()[0], c.data_ptr<double>()[1], c.data_ptr<double>()[2]};
   const Camera cam = make_camera(viewmat, K, int(width), int(height));
   std::vector<int64_t> group_rows;
-  for (const auto& m : means) group_rows.push_back(m.size(0));
+  for (const auto& sp : spans) group_rows.push_back(sp.second);
   const std::vector<Segment> segs = make_segments(group_rows, seg_rows, moves, move_on, cam);
   int64_t N = 0;
-  for (const auto& m : means) N += m.size(0);
+  for (const int64_t n : group_rows) N += n;
   const int nt = clamp_threads(nthreads);
   if (st == at::kFloat)
-    return forward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
-                                     segs, cam, near, far, eps2d, cull, st, nt);
-  return forward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, int(sh_degree)), N, ctr,
-                                    segs, cam, near, far, eps2d, cull, st, nt);
+    return forward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, spans, int(sh_degree)),
+                                     N, ctr, segs, cam, near, far, eps2d, cull, st, nt);
+  return forward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, spans, int(sh_degree)),
+                                    N, ctr, segs, cam, near, far, eps2d, cull, st, nt);
 }
 
 // Returns per block of groups (``blocks`` (G,) non-decreasing block index per group; empty:
@@ -1632,15 +1655,15 @@ std::vector<at::Tensor> raster_forward_train(std::vector<at::Tensor> means, std:
 std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std::vector<at::Tensor> quats,
                                               std::vector<at::Tensor> scales, std::vector<at::Tensor> opac,
                                               std::vector<at::Tensor> sh0, std::vector<at::Tensor> shN,
-                                              int64_t sh_degree, at::Tensor center, at::Tensor seg_rows,
-                                              at::Tensor moves, at::Tensor move_on, at::Tensor viewmat, at::Tensor K,
-                                              int64_t width, int64_t height,
+                                              at::Tensor group_spans, int64_t sh_degree, at::Tensor center,
+                                              at::Tensor seg_rows, at::Tensor moves, at::Tensor move_on,
+                                              at::Tensor viewmat, at::Tensor K, int64_t width, int64_t height,
                                               double near, double far, double eps2d, at::Tensor rec, at::Tensor col, at::Tensor gidx, at::Tensor offsets,
                                               at::Tensor ids, at::Tensor acc, at::Tensor dn, at::Tensor aa,
                                               at::Tensor g_acc, at::Tensor g_dn, at::Tensor g_a, at::Tensor blocks,
                                               int64_t nthreads) {
   const auto st = means[0].scalar_type();
-  check_groups(means, quats, scales, opac, sh0, shN, st);
+  const auto spans = check_groups(means, quats, scales, opac, sh0, shN, group_spans, st);
   for (auto [t, n] : {std::pair{&rec, "rec"}, {&col, "colors"}, {&acc, "acc"}, {&dn, "dn"}, {&aa, "alpha"},
                       {&g_acc, "g_acc"}, {&g_dn, "g_dn"}, {&g_a, "g_alpha"}})
     check_cpu_contig(*t, st, n);
@@ -1648,7 +1671,7 @@ std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std
   const double ctr[3] = {c.data_ptr<double>()[0], c.data_ptr<double>()[1], c.data_ptr<double>()[2]};
   const Camera cam = make_camera(viewmat, K, int(width), int(height));
   std::vector<int64_t> group_rows;
-  for (const auto& m : means) group_rows.push_back(m.size(0));
+  for (const auto& sp : spans) group_rows.push_back(sp.second);
   const std::vector<Segment> segs = make_segments(group_rows, seg_rows, moves, move_on, cam);
   std::vector<int64_t> block(means.size());
   if (blocks.numel() == 0) {
@@ -1663,13 +1686,13 @@ std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std
     }
   }
   int64_t N = 0;
-  for (const auto& m : means) N += m.size(0);
+  for (const int64_t n : group_rows) N += n;
   const int nt = clamp_threads(nthreads);
   if (st == at::kFloat)
-    return backward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, int(sh_degree)), block, N, ctr,
+    return backward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, spans, int(sh_degree)), block, N, ctr,
                                       segs, cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
                                       g_a, st, nt);
-  return backward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, int(sh_degree)), block, N, ctr,
+  return backward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, spans, int(sh_degree)), block, N, ctr,
                                      segs, cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
                                      g_a, st, nt);
 }
