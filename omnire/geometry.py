@@ -90,11 +90,10 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     ).reshape(*q.shape[:-1], 3, 3)
 
 
-# rotmat_to_quat: radicands 1 + [m00, m11, m22] @ _RADICAND_SIGNS are 4 w^2, 4 x^2, 4 y^2, 4 z^2;
-# branch b takes the components (w, x, y, z) from these columns of
+# rotmat_to_quat: the radicands r = 1 + [t, 2 m00 - t, 2 m11 - t, 2 m22 - t] (t the trace) are
+# 4 w^2, 4 x^2, 4 y^2, 4 z^2; branch b takes the components (w, x, y, z) from these columns of
 # [r_w, r_x, r_y, r_z, m21 - m12, m02 - m20, m10 - m01, m01 + m10, m02 + m20, m12 + m21], each over
 # 2 sqrt(r_b) (its own component r_b / (2 sqrt(r_b)) = sqrt(r_b) / 2).
-_RADICAND_SIGNS = ((1.0, 1.0, -1.0, -1.0), (1.0, -1.0, 1.0, -1.0), (1.0, -1.0, -1.0, 1.0))
 _BRANCH_COLUMNS = ((0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3))
 
 
@@ -103,27 +102,24 @@ def rotmat_to_quat(R: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
     """(..., 3, 3) rotation -> (..., 4) unit wxyz with w >= 0.
 
     Shepperd's method with kornia's ``rotation_matrix_to_quaternion`` branch choice (w when
-    the trace is positive, else the largest diagonal entry's axis), so the same numbers
-    wherever the chosen radicand exceeds ``eps`` (every rotation: it is at least 1); a
-    radicand at or below ``eps`` is replaced by a constant, with a zero gradient. About a
-    quarter of kornia's tensor operations, forward and backward: this runs several times per
-    training step (box poses, camera-pose moves, and per point in SMPL skinning)."""
+    the trace is positive, else the axis of the largest diagonal entry, ties to the later
+    axis), so the same numbers wherever the chosen radicand exceeds ``eps`` (every rotation:
+    it is at least 1); a radicand at or below ``eps`` counts as ``eps``, with a zero
+    gradient. A fraction of kornia's tensor operations, forward and backward: this runs
+    several times per training step (box poses, camera-pose moves, and per point in SMPL
+    skinning)."""
     shape = R.shape[:-2]
-    m = R.reshape(-1, 9)
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m.unbind(-1)
-    signs = torch.tensor(_RADICAND_SIGNS, dtype=R.dtype, device=R.device)
-    r = 1.0 + torch.stack([m00, m11, m22], -1) @ signs  # (M, 4)
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = R.reshape(-1, 9).unbind(-1)
+    t = m00 + m11 + m22
+    r = torch.stack([t, 2 * m00 - t, 2 * m11 - t, 2 * m22 - t], -1) + 1.0  # (M, 4)
     feats = torch.cat([r, torch.stack([m21 - m12, m02 - m20, m10 - m01, m01 + m10, m02 + m20, m12 + m21], -1)], -1)
     with torch.no_grad():
-        branch = torch.where(m00 + m11 + m22 > 0, 0,
-                             torch.where((m00 > m11) & (m00 > m22), 1, torch.where(m11 > m22, 2, 3)))
-        columns = torch.tensor(_BRANCH_COLUMNS, device=R.device)[branch]  # (M, 4)
-    chosen = r.gather(-1, branch[:, None])  # (M, 1)
-    ok = chosen > eps  # sqrt is only differentiated above the floor
-    sq = torch.where(ok, 2.0 * torch.sqrt(torch.where(ok, chosen, torch.ones_like(chosen))),
-                     torch.full_like(chosen, 2.0 * eps ** 0.5))
-    q = feats.gather(-1, columns) / sq
-    q = torch.where(q[:, :1] < 0, -q, q)
+        # argmax of (m22, m11, m00) returns the first largest: the later axis of a tie
+        branch = torch.where(t > 0, 0, 3 - torch.stack([m22, m11, m00], -1).argmax(-1))
+        columns = torch.tensor(_BRANCH_COLUMNS, device=R.device).index_select(0, branch)  # (M, 4)
+    numerators = feats.gather(-1, columns)
+    sq = 2.0 * torch.sqrt(r.gather(-1, branch[:, None]).clamp_min(eps))  # (M, 1)
+    q = numerators / torch.where(numerators[:, :1] < 0, -sq, sq)  # w >= 0
     return q.reshape(*shape, 4)
 
 
