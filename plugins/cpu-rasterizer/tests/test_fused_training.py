@@ -212,6 +212,25 @@ def test_fused_refuses_non_finite_and_bad_shapes():
         rast.rasterize_gaussians_train([wrong], camera, 1)
 
 
+def assert_same_render(a, b, a_in, b_in, dtype) -> float:
+    """Renders ``a`` and ``b`` agree in pixels, radii and AbsGrad, and the raw tensors of
+    their inputs ``a_in`` / ``b_in`` in their gradients (dense or row-sparse), to the dtype's
+    rounding; returns that tolerance."""
+    tol = 1e-10 if dtype == torch.float64 else 1e-4
+    for key in ("rgb", "alpha"):
+        assert float((getattr(a, key) - getattr(b, key)).detach().abs().max()) <= tol, key
+    assert torch.equal(a.radii, b.radii)
+    torch.testing.assert_close(a.absgrad2d, b.absgrad2d, rtol=0, atol=tol * float(b.absgrad2d.abs().max()))
+    for pa, pb in zip(a_in, b_in):
+        for k in GAUSSIAN_KEYS:
+            ga, gb = getattr(pa, k).grad, getattr(pb, k).grad
+            if gb is None or gb.numel() == 0:
+                continue
+            ga, gb = ga.to_dense(), gb.to_dense()
+            assert float((ga - gb).abs().max()) <= tol * max(1.0, float(gb.abs().max())), k
+    return tol
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_moved_scene_matches_moved_copies(dtype):
     """``moved=(R, t)`` (the view matrix composed with the move, view directions moved, the
@@ -237,17 +256,7 @@ def test_moved_scene_matches_moved_copies(dtype):
         outs[fused] = (out, ins, delta)
     (a, a_in, a_d), (b, b_in, b_d) = outs[True], outs[False]
     assert float(b.alpha.detach().max()) > 0.5 and int((b.radii > 0).sum()) > 100
-    tol = 1e-10 if dtype == torch.float64 else 1e-4
-    for key in ("rgb", "alpha"):
-        assert float((getattr(a, key) - getattr(b, key)).detach().abs().max()) <= tol, key
-    assert torch.equal(a.radii, b.radii)
-    torch.testing.assert_close(a.absgrad2d, b.absgrad2d, rtol=0, atol=tol * float(b.absgrad2d.abs().max()))
-    for pa, pb in zip(a_in, b_in):
-        for k in GAUSSIAN_KEYS:
-            ga, gb = getattr(pa, k).grad, getattr(pb, k).grad
-            if gb is None or gb.numel() == 0:
-                continue
-            assert float((ga - gb).abs().max()) <= tol * max(1.0, float(gb.abs().max())), k
+    tol = assert_same_render(a, b, a_in, b_in, dtype)
     assert float(b_d.grad.abs().min()) > 0  # every component of the correction is seen
     torch.testing.assert_close(a_d.grad, b_d.grad, rtol=tol * 10, atol=tol * float(b_d.grad.abs().max()))
 
@@ -321,17 +330,7 @@ def test_placed_parts_match_world_copies(dtype, with_move):
         outs[fused] = (out, ins, rot, trans, delta)
     (a, a_in, a_rot, a_tr, a_d), (b, b_in, b_rot, b_tr, b_d) = outs[True], outs[False]
     assert float(b.alpha.detach().max()) > 0.5 and int((b.radii[:150] > 0).sum()) > 50
-    tol = 1e-10 if dtype == torch.float64 else 1e-4
-    for key in ("rgb", "alpha"):
-        assert float((getattr(a, key) - getattr(b, key)).detach().abs().max()) <= tol, key
-    assert torch.equal(a.radii, b.radii)
-    torch.testing.assert_close(a.absgrad2d, b.absgrad2d, rtol=0, atol=tol * float(b.absgrad2d.abs().max()))
-    for pa, pb in zip(a_in, b_in):
-        for k in GAUSSIAN_KEYS:
-            ga, gb = getattr(pa, k).grad, getattr(pb, k).grad
-            if gb is None or gb.numel() == 0:
-                continue
-            assert float((ga - gb).abs().max()) <= tol * max(1.0, float(gb.abs().max())), k
+    tol = assert_same_render(a, b, a_in, b_in, dtype)
     for ga, gb in ((a_rot.grad, b_rot.grad), (a_tr.grad, b_tr.grad)) + (((a_d.grad, b_d.grad),) if with_move else ()):
         assert float(gb[[0, 2, 3]].abs().min()) > 0  # the segments with rows see every component
         torch.testing.assert_close(ga, gb, rtol=tol * 10, atol=tol * float(gb.abs().max()))
@@ -417,17 +416,9 @@ def test_placement_starts_draw_picked_rows_in_place(dtype):
         outs[in_place] = (out, ins, rot, trans)
     (a, a_in, a_rot, a_tr), (b, b_in, b_rot, b_tr) = outs[True], outs[False]
     assert len(a.radii) == len(rows) + len(local[1]) and int((b.radii[:len(rows)] > 0).sum()) > 30
-    tol = 1e-10 if dtype == torch.float64 else 1e-4
-    for key in ("rgb", "alpha"):
-        assert float((getattr(a, key) - getattr(b, key)).detach().abs().max()) <= tol, key
-    assert torch.equal(a.radii, b.radii)
-    torch.testing.assert_close(a.absgrad2d, b.absgrad2d, rtol=0, atol=tol * float(b.absgrad2d.abs().max()))
+    tol = assert_same_render(a, b, a_in, b_in, dtype)
     for pa, pb in zip(a_in, b_in):
-        for k in GAUSSIAN_KEYS:
-            ga, gb = getattr(pa, k).grad, getattr(pb, k).grad
-            assert ga.layout == gb.layout
-            ga, gb = ga.to_dense(), gb.to_dense()
-            assert float((ga - gb).abs().max()) <= tol * max(1.0, float(gb.abs().max())), k
+        assert all(getattr(pa, k).grad.layout == getattr(pb, k).grad.layout for k in GAUSSIAN_KEYS)
     assert a_in[0].means.grad.is_sparse and torch.equal(a_in[0].means.grad._indices()[0], rows)
     for ga, gb in ((a_rot.grad, b_rot.grad), (a_tr.grad, b_tr.grad)):
         torch.testing.assert_close(ga, gb, rtol=tol * 10, atol=tol * float(gb.abs().max()))
