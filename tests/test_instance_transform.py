@@ -7,7 +7,8 @@ import torch
 
 from omnire.gaussians import Gaussians
 from omnire.geometry import axis_angle_to_rotmat, quat_left_matrix, quat_multiply, rotmat_to_quat
-from omnire.nodes.actors import _SegmentTransform, segment_lengths, transform_instances, transform_rows
+from omnire.nodes.actors import segment_lengths, transform_instances, transform_rows
+from omnire.placement import _SegmentTransform
 
 
 def local_gaussians(M: int, g: torch.Generator, dtype=torch.float64) -> Gaussians:

@@ -26,7 +26,7 @@ from omnire.geometry import axis_angle_to_rotmat, quat_multiply, rotmat_to_quat,
 from omnire.interpolation import bracket
 from omnire.camera import Camera, gaussian_reach, may_be_drawn
 from omnire.nodes.base import GaussianNode, GaussianNodeConfig, NodeContext, NodeOutput, ParamGroup
-from omnire.placement import Placement, _SegmentTransform  # noqa: F401 (_SegmentTransform: tests)
+from omnire.placement import Placement
 from omnire.pointcloud import points_in_box
 from omnire.rowsparse import gather_rows
 

@@ -70,7 +70,7 @@ class NodeOutput:
             rasterizer that draws placed rows itself takes these and no copy is made.
     """
 
-    def __init__(self, gaussians: Gaussians, rows: Optional[torch.Tensor], time: SceneTime,
+    def __init__(self, gaussians: Optional[Gaussians], rows: Optional[torch.Tensor], time: SceneTime,
                  extras: Optional[dict[str, Any]] = None) -> None:
         self._gaussians: Optional[Gaussians] = gaussians
         self.rows = rows
@@ -84,13 +84,15 @@ class NodeOutput:
                extras: Optional[dict[str, Any]] = None) -> "NodeOutput":
         """An output of box-local Gaussians ``local`` put in the world by ``placement``."""
         placement.check_source(len(local))
-        out = cls(None, rows, time, extras)  # type: ignore[arg-type]
+        out = cls(None, rows, time, extras)
         out.local, out.placement = local, placement
         return out
 
     @property
     def gaussians(self) -> Gaussians:
         if self._gaussians is None:
+            if self.placement is None:
+                raise ValueError("NodeOutput has no Gaussians: pass world Gaussians, or build it with NodeOutput.placed")
             self._gaussians = self.placement.apply(self.local)
         return self._gaussians
 
