@@ -34,9 +34,14 @@ class _GatherRows(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         (rows,) = ctx.saved_tensors
-        sparse = torch.sparse_coo_tensor(rows[None], grad.contiguous(), ctx.shape, is_coalesced=True,
-                                         check_invariants=False)
-        return sparse, None
+        return row_sparse(rows, grad, ctx.shape), None
+
+
+def row_sparse(rows: torch.Tensor, values: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+    """The gradient of a parameter of ``shape`` (N, ...) whose rows ``rows`` (M,), strictly
+    increasing, got ``values`` (M, ...): a sparse COO tensor declared coalesced, the form
+    :func:`step_sparse_params` steps row by row."""
+    return torch.sparse_coo_tensor(rows[None], values.contiguous(), shape, is_coalesced=True, check_invariants=False)
 
 
 def gather_rows(param: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:

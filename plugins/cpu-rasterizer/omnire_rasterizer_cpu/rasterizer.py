@@ -17,6 +17,7 @@ from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 from omnire.geometry import quat_multiply, rotmat_to_quat
 from omnire.placement import Placement
 from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
+from omnire.rowsparse import row_sparse
 
 from ._build import extension as _ext
 from .ssim import ssim_map as native_ssim_map
@@ -210,10 +211,8 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
                 continue
             rows = pick[2]
             for k in range(6):  # the picked rows' gradients, row-sparse as omnire.rowsparse.gather_rows gives them
-                g, source = grads[6 * i + k], tensors[6 * i + k]
-                if g is not None:
-                    grads[6 * i + k] = torch.sparse_coo_tensor(rows[None], g, source.shape, is_coalesced=True,
-                                                               check_invariants=False)
+                if grads[6 * i + k] is not None:
+                    grads[6 * i + k] = row_sparse(rows, grads[6 * i + k], tensors[6 * i + k].shape)
         return (None, None, None, None, g_R, g_t, g_qa, *grads)
 
 
