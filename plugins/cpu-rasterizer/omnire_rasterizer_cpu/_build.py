@@ -6,11 +6,17 @@ one of them changes; later processes load the cached ``.so`` in milliseconds. Bu
 about a minute on 2 cores. Any failure (no compiler, no AVX2 on this CPU, ...) is recorded
 once and reported by :func:`load_extension` as ``(None, reason)``.
 
+Builders take turns through an ``flock`` on the build directory, which the kernel drops
+when its holder dies. torch's own lock is a plain file (``<build dir>/lock``) that a build
+killed midway leaves behind, and every later load would wait on it forever; whoever holds
+the ``flock`` knows that no one else is building, so such a file is stale and is removed.
+
 Environment: ``OMNIRE_EXTENSIONS_DIR`` overrides the cache root
 (default ``$XDG_CACHE_HOME/omnire/extensions`` or ``~/.cache/omnire/extensions``).
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
@@ -24,8 +30,9 @@ log = logging.getLogger(__name__)
 SOURCES = [Path(__file__).parent / "csrc" / name for name in ("raster.cpp", "ssim.cpp")]
 # Portable flags: AVX2 + FMA (not -march=native, which ties the .so to one machine).
 # -ffp-contract=off keeps forward and backward bit-identical in their skip/stop decisions.
-CFLAGS = ["-O3", "-mavx2", "-mfma", "-fopenmp", "-ffp-contract=off", "-std=c++17"]
-LDFLAGS = ["-fopenmp"]
+# Tuples, passed to torch as fresh lists: torch appends its own libraries to the lists it gets.
+CFLAGS = ("-O3", "-mavx2", "-mfma", "-fopenmp", "-ffp-contract=off", "-std=c++17")
+LDFLAGS = ("-fopenmp",)
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -54,26 +61,53 @@ def cache_dir() -> Path:
     return Path(base) / "omnire" / "extensions"
 
 
-def _build() -> ModuleType:
+@contextlib.contextmanager
+def _builders_take_turns(build_dir: Path):
+    """Hold an exclusive ``flock`` on ``build_dir/build.lock``, then clear a stale torch lock."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: torch's own lock only
+        yield
+        return
+    with open(build_dir / "build.lock", "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            stale = build_dir / "lock"
+            if stale.exists():
+                log.warning("removing %s, left by an extension build that was killed", stale)
+                stale.unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def build_directory() -> Path:
+    """Where this source, these flags and this torch build to: ``cache_dir()/<name>``."""
     import torch
-    from torch.utils import cpp_extension
 
     digest = hashlib.sha256()
     for source in SOURCES:
         digest.update(source.read_bytes())
     digest.update(" ".join(CFLAGS + LDFLAGS).encode())
     digest.update(torch.__version__.encode())
-    name = "omnire_raster_cpu_" + digest.hexdigest()[:12]
-    build_dir = cache_dir() / name
+    return cache_dir() / ("omnire_raster_cpu_" + digest.hexdigest()[:12])
+
+
+def _build() -> ModuleType:
+    from torch.utils import cpp_extension
+
+    build_dir = build_directory()
+    name = build_dir.name
     build_dir.mkdir(parents=True, exist_ok=True)
-    return cpp_extension.load(
-        name=name,
-        sources=[str(source) for source in SOURCES],
-        extra_cflags=CFLAGS,
-        extra_ldflags=LDFLAGS,
-        build_directory=str(build_dir),
-        verbose=False,
-    )
+    with _builders_take_turns(build_dir):
+        return cpp_extension.load(
+            name=name,
+            sources=[str(source) for source in SOURCES],
+            extra_cflags=list(CFLAGS),
+            extra_ldflags=list(LDFLAGS),
+            build_directory=str(build_dir),
+            verbose=False,
+        )
 
 
 def build_error_line(message: str) -> str:
