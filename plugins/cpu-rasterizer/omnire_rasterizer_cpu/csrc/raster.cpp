@@ -185,8 +185,11 @@ void project_one(const S* mean, const S* quat, const S* scale, const Camera& cam
   p.in_depth = (z > near && z < far && z > 0.0);  // strictly inside, like the reference
   p.ok = false;
   if (!p.in_depth) return;
-  p.m2d[0] = cam.fx * p.t[0] / z + cam.cx;
-  p.m2d[1] = cam.fy * p.t[1] / z + cam.cy;
+  // one division per quantity divided by (z, |q|, det), multiplications after it: divisions
+  // are the slowest arithmetic here and this runs for every row, forward and backward
+  const double iz = 1.0 / z;
+  p.m2d[0] = cam.fx * p.t[0] * iz + cam.cx;
+  p.m2d[1] = cam.fy * p.t[1] * iz + cam.cy;
   if (!std::isfinite(p.m2d[0]) || !std::isfinite(p.m2d[1])) {
     p.in_depth = false;
     return;
@@ -196,7 +199,8 @@ void project_one(const S* mean, const S* quat, const S* scale, const Camera& cam
   double q[4] = {double(quat[0]), double(quat[1]), double(quat[2]), double(quat[3])};
   p.qnorm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
   if (p.qnorm > QUAT_EPS) {
-    for (int i = 0; i < 4; ++i) p.qn[i] = q[i] / p.qnorm;
+    const double iq = 1.0 / p.qnorm;
+    for (int i = 0; i < 4; ++i) p.qn[i] = q[i] * iq;
   } else {
     p.qn[0] = 1.0; p.qn[1] = p.qn[2] = p.qn[3] = 0.0;
   }
@@ -214,13 +218,13 @@ void project_one(const S* mean, const S* quat, const S* scale, const Camera& cam
     for (int j = i; j < 3; ++j, ++k)
       p.Sig3[k] = p.M[i * 3] * p.M[j * 3] + p.M[i * 3 + 1] * p.M[j * 3 + 1] + p.M[i * 3 + 2] * p.M[j * 3 + 2];
 
-  const double ur = p.t[0] / z, vr = p.t[1] / z;
+  const double ur = p.t[0] * iz, vr = p.t[1] * iz;
   p.u = std::min(cam.lim_xp, std::max(-cam.lim_xn, ur));
   p.v = std::min(cam.lim_yp, std::max(-cam.lim_yn, vr));
   p.u_clamped = !(ur > -cam.lim_xn && ur < cam.lim_xp);
   p.v_clamped = !(vr > -cam.lim_yn && vr < cam.lim_yp);
   // J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]];  T = J * Rview
-  const double J00 = cam.fx / z, J02 = -cam.fx * p.u / z, J11 = cam.fy / z, J12 = -cam.fy * p.v / z;
+  const double J00 = cam.fx * iz, J02 = -cam.fx * p.u * iz, J11 = cam.fy * iz, J12 = -cam.fy * p.v * iz;
   for (int j = 0; j < 3; ++j) {
     p.T[j] = J00 * cam.R[j] + J02 * cam.R[6 + j];
     p.T[3 + j] = J11 * cam.R[3 + j] + J12 * cam.R[6 + j];
@@ -237,9 +241,10 @@ void project_one(const S* mean, const S* quat, const S* scale, const Camera& cam
   p.det = p.cov[0] * p.cov[2] - p.cov[1] * p.cov[1];
   if (!(p.det > 0.0) || !std::isfinite(p.det) || !std::isfinite(p.cov[0]) || !std::isfinite(p.cov[2]))
     return;
-  p.conic[0] = p.cov[2] / p.det;
-  p.conic[1] = -p.cov[1] / p.det;
-  p.conic[2] = p.cov[0] / p.det;
+  const double idet = 1.0 / p.det;
+  p.conic[0] = p.cov[2] * idet;
+  p.conic[1] = -p.cov[1] * idet;
+  p.conic[2] = p.cov[0] * idet;
   p.ok = std::isfinite(p.conic[0]) && std::isfinite(p.conic[1]) && std::isfinite(p.conic[2]);
 }
 
@@ -708,12 +713,12 @@ void project_backward_one(const Proj& p, const Camera& cam, const double gconic[
   for (int i = 0; i < 3; ++i) gmean[i] = gscale[i] = 0.0;
   for (int i = 0; i < 4; ++i) gquat[i] = 0.0;
   if (!p.in_depth) return;
-  const double z = p.t[2];
+  const double iz = 1.0 / p.t[2], iz2 = iz * iz;  // multiplications after one division
   double gt[3] = {0.0, 0.0, gz_depth};
   // mean2d = (fx tx/z + cx, fy ty/z + cy)
-  gt[0] += gm2d[0] * cam.fx / z;
-  gt[1] += gm2d[1] * cam.fy / z;
-  gt[2] += -(gm2d[0] * cam.fx * p.t[0] + gm2d[1] * cam.fy * p.t[1]) / (z * z);
+  gt[0] += gm2d[0] * cam.fx * iz;
+  gt[1] += gm2d[1] * cam.fy * iz;
+  gt[2] += -(gm2d[0] * cam.fx * p.t[0] + gm2d[1] * cam.fy * p.t[1]) * iz2;
   if (p.ok) {
     // conic = cov^-1: dL/dcov = -C Gc C with Gc symmetric (off-diagonal gets half of dL/db).
     const double C[4] = {p.conic[0], p.conic[1], p.conic[1], p.conic[2]};
@@ -746,11 +751,10 @@ void project_backward_one(const Proj& p, const Camera& cam, const double gconic[
     };
     const double gJ00 = dJ(0, 0), gJ02 = dJ(0, 2), gJ11 = dJ(1, 1), gJ12 = dJ(1, 2);
     // J00 = fx/z, J02 = -fx u/z, J11 = fy/z, J12 = -fy v/z, u = clamp(tx/z), v = clamp(ty/z)
-    const double z2 = z * z;
-    gt[2] += -gJ00 * cam.fx / z2 + gJ02 * cam.fx * p.u / z2 - gJ11 * cam.fy / z2 + gJ12 * cam.fy * p.v / z2;
-    const double gu = -gJ02 * cam.fx / z, gv = -gJ12 * cam.fy / z;
-    if (!p.u_clamped) { gt[0] += gu / z; gt[2] -= gu * p.t[0] / z2; }
-    if (!p.v_clamped) { gt[1] += gv / z; gt[2] -= gv * p.t[1] / z2; }
+    gt[2] += (-gJ00 * cam.fx + gJ02 * cam.fx * p.u - gJ11 * cam.fy + gJ12 * cam.fy * p.v) * iz2;
+    const double gu = -gJ02 * cam.fx * iz, gv = -gJ12 * cam.fy * iz;
+    if (!p.u_clamped) { gt[0] += gu * iz; gt[2] -= gu * p.t[0] * iz2; }
+    if (!p.v_clamped) { gt[1] += gv * iz; gt[2] -= gv * p.t[1] * iz2; }
     // Sig3 = M M^T: dM = (GS + GS^T) M
     double GM[9];
     for (int i = 0; i < 3; ++i)
@@ -779,7 +783,8 @@ void project_backward_one(const Proj& p, const Camera& cam, const double gconic[
     // q_hat = q / |q| (constant identity below QUAT_EPS)
     if (p.qnorm > QUAT_EPS) {
       const double dot = gq[0] * w + gq[1] * x + gq[2] * y + gq[3] * zq;
-      for (int i = 0; i < 4; ++i) gquat[i] = (gq[i] - p.qn[i] * dot) / p.qnorm;
+      const double iq = 1.0 / p.qnorm;
+      for (int i = 0; i < 4; ++i) gquat[i] = (gq[i] - p.qn[i] * dot) * iq;
     }
   }
   // t = Rview m + tview
