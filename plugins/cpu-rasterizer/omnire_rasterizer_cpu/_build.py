@@ -70,7 +70,12 @@ def _builders_take_turns(build_dir: Path):
         yield
         return
     with open(build_dir / "build.lock", "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        except OSError as exc:  # a filesystem without locks (some network mounts)
+            log.warning("no lock on %s (%s): relying on torch's lock file alone", handle.name, exc)
+            yield
+            return
         try:
             stale = build_dir / "lock"
             if stale.exists():
