@@ -31,7 +31,11 @@ def test_bench_step_times_both_paths(tmp_path, capsys):
         assert set(stages) == {"nodes", "render", "loss", "backward", "densify_stats", "optimizer", "total",
                                "total_cpu"}
         assert stages["total"]["median_ms"] > 0 and stages["render"]["median_ms"] > 0
-    assert "backward" in capsys.readouterr().out
+    machine = result["machine"]  # what the numbers were measured on
+    assert machine["threads"] == 1 and machine["logical_cores"] >= 1
+    assert machine["copy_gb_s"] > 0 and machine["matmul_gflop_s"] > 0
+    out_text = capsys.readouterr().out
+    assert "backward" in out_text and "GB/s copy" in out_text
     with pytest.raises(ConfigError, match="--paths"):
         main([*ARGS, "--paths", "fast", "--steps", "1", "--output", str(out)], plugins)
 
@@ -63,3 +67,23 @@ def test_bench_step_times_a_trained_runs_checkpoint(tmp_path_factory, tmp_path):
     other = method_args.replace("gaussians-per-person 300", "gaussians-per-person 400")
     with pytest.raises(ConfigError, match="method settings"):
         main([*args, f"--method-args={other}", "--checkpoint", str(run), "--output", str(out)], plugins)
+
+
+def test_machine_probes_measure_what_they_say():
+    """The probes against a slower obvious measurement of the same operations."""
+    import time
+
+    import torch
+
+    from omnire.bench.machine import machine_info, machine_line
+
+    info = machine_info(1)
+    a = torch.rand(512, 512)
+    start = time.perf_counter()
+    for _ in range(3):
+        a @ a
+    naive_gflops = 3 * 2 * 512**3 / (time.perf_counter() - start) / 1e9
+    # the probe takes the best of several larger products: at least the naive rate's order
+    assert info["matmul_gflop_s"] > 0.2 * naive_gflops
+    assert info["cpu"] and isinstance(info["avx2"], bool) and torch.get_num_threads() >= 1
+    assert f"{info['copy_gb_s']} GB/s copy" in machine_line(info)

@@ -35,6 +35,7 @@ from typing import Optional
 import tyro
 
 from omnire.errors import ConfigError
+from omnire.bench.machine import machine_info, machine_line
 from omnire.io.atomic import atomic_write_text
 from omnire.ui import output_console
 
@@ -200,6 +201,7 @@ def run(args: StepBenchArgs, plugins) -> dict:
                 cpu_total[p].append(sum(cpu.values()))
     model.use_fused_training = True
     return {
+        "machine": machine_info(args.threads),
         "method": args.method, "dataparser": args.dataparser, "data": str(args.data),
         "rasterizer": type(model.rasterizer).__name__, "threads": args.threads, "at_step": at_step,
         "checkpoint": None if args.checkpoint is None else str(args.checkpoint),
@@ -225,6 +227,8 @@ def print_table(result: dict) -> None:
                                f"({result['paths'][p][stage]['q25_ms']:.1f}-{result['paths'][p][stage]['q75_ms']:.1f})"
                                for p in paths))
     output_console().print(table)
+    if "machine" in result:
+        output_console().print(f"on {machine_line(result['machine'])}")
 
 
 def main(argv: list[str], plugins) -> int:

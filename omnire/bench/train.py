@@ -26,6 +26,7 @@ from typing import Optional
 
 import tyro
 
+from omnire.bench.machine import machine_info
 from omnire.io.atomic import atomic_write_text
 
 
@@ -271,6 +272,7 @@ def main(argv: list[str], plugins) -> int:
         previous = {tuple(r["command"]): r for r in json.loads((args.output / "results.json").read_text())["results"]
                     if r.get("exit_code") == 0}
     results = []
+    machine = machine_info(args.threads or 1)
     for m in methods:
         kept = previous.get(tuple(_command(args, m)[2:]))
         if kept is not None:
@@ -287,7 +289,8 @@ def main(argv: list[str], plugins) -> int:
                 console.print(f"[yellow]{mixed}[/] (pass --method-args=\"--method.rasterizer cpu\" to fail instead)")
         # after every entry, reused ones included: an interrupted comparison keeps what it has
         atomic_write_text(args.output / "results.json", json.dumps(
-            {"args": json.loads(json.dumps(dataclasses.asdict(args), default=str)), "results": results}, indent=2))
+            {"args": json.loads(json.dumps(dataclasses.asdict(args), default=str)), "machine": machine,
+             "results": results}, indent=2))
     return _report(args, results, console)
 
 
