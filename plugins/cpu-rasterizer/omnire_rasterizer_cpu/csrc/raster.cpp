@@ -568,7 +568,8 @@ enum { G_MX = 0, G_MY, G_CA, G_CB, G_CC, G_OP, G_Z, G_AX, G_AY, G_COL };
 template <typename S>
 void render_backward(const Camera& cam, int D, int tilesX, int tilesY, const S* rec, const S* colors,
                      const int64_t* off, const int32_t* ids, const S* acc, const S* dn, const S* aa,
-                     const S* g_acc, const S* g_dn, const S* g_a, int64_t N, double* gbuf, int nthreads) {
+                     const S* g_acc, const S* g_dn, const S* g_a, int64_t N, double* gbuf, uint8_t* touched,
+                     int nthreads) {
   using P = typename PackFor<S>::P;
   using V = typename P::V;
   using M = typename P::M;
@@ -579,6 +580,7 @@ void render_backward(const Camera& cam, int D, int tilesX, int tilesY, const S* 
 #pragma omp parallel num_threads(nthreads)
   {
     double* mybuf = gbuf + int64_t(omp_get_thread_num()) * N * K;
+    uint8_t* mytouched = touched + int64_t(omp_get_thread_num()) * N;
     alignas(32) S T[TPIX], alive[TPIX], pre[TPIX], stot[TPIX], gdn[TPIX], ga[TPIX];
     std::vector<S> gc_store(size_t(D) * TPIX + 8);
     S* gC = gc_store.data();
@@ -695,12 +697,17 @@ void render_backward(const Camera& cam, int D, int tilesX, int tilesY, const S* 
             P::store(&T[idx], P::sel(m, nT, Tv));
           }
         }
+        // The buffers start uninitialised: a thread's first sum for a Gaussian is stored, later
+        // ones added (the same numbers as adding to zeros, without zeroing nthreads x N x K doubles)
         double* gb = mybuf + gi * K;
-        gb[G_MX] += P::hsum(s_mx); gb[G_MY] += P::hsum(s_my);
-        gb[G_CA] += P::hsum(s_ca); gb[G_CB] += P::hsum(s_cb); gb[G_CC] += P::hsum(s_cc);
-        gb[G_OP] += P::hsum(s_op); gb[G_Z] += P::hsum(s_z);
-        gb[G_AX] += P::hsum(s_ax); gb[G_AY] += P::hsum(s_ay);
-        for (int c = 0; c < D; ++c) gb[G_COL + c] += P::hsum(vcol[c]);
+        const bool first = !mytouched[gi];
+        mytouched[gi] = 1;
+        auto put = [&](int slot, double x) { gb[slot] = first ? x : gb[slot] + x; };
+        put(G_MX, P::hsum(s_mx)); put(G_MY, P::hsum(s_my));
+        put(G_CA, P::hsum(s_ca)); put(G_CB, P::hsum(s_cb)); put(G_CC, P::hsum(s_cc));
+        put(G_OP, P::hsum(s_op)); put(G_Z, P::hsum(s_z));
+        put(G_AX, P::hsum(s_ax)); put(G_AY, P::hsum(s_ay));
+        for (int c = 0; c < D; ++c) put(G_COL + c, P::hsum(vcol[c]));
       }
     }
   }
@@ -834,10 +841,12 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means, const at::Tensor&
   const int D = int(colors.size(1));
   const int tilesX = (cam.W + TILE - 1) / TILE, tilesY = (cam.H + TILE - 1) / TILE;
   const int K = G_COL + D;
-  auto gbuf = at::zeros({nthreads, N, K}, at::kDouble);
+  auto gbuf = at::empty({nthreads, N, K}, at::kDouble);  // rows valid where ``touched``
+  std::vector<uint8_t> touched(size_t(nthreads) * N, 0);
   render_backward<S>(cam, D, tilesX, tilesY, rec.data_ptr<S>(), colors.data_ptr<S>(), offsets.data_ptr<int64_t>(),
                      ids.data_ptr<int32_t>(), acc.data_ptr<S>(), dn.data_ptr<S>(), aa.data_ptr<S>(),
-                     g_acc.data_ptr<S>(), g_dn.data_ptr<S>(), g_a.data_ptr<S>(), N, gbuf.data_ptr<double>(), nthreads);
+                     g_acc.data_ptr<S>(), g_dn.data_ptr<S>(), g_a.data_ptr<S>(), N, gbuf.data_ptr<double>(),
+                     touched.data(), nthreads);
   const double* gb = gbuf.data_ptr<double>();
   auto opts = means.options();
   auto g_means = at::zeros({N, 3}, opts), g_quats = at::zeros({N, 4}, opts), g_scales = at::zeros({N, 3}, opts);
@@ -855,7 +864,8 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means, const at::Tensor&
     if (K > 80) { big.assign(K, 0.0); s = big.data(); }
     for (int k = 0; k < K; ++k) s[k] = 0.0;
     for (int t = 0; t < nthreads; ++t)
-      for (int k = 0; k < K; ++k) s[k] += gb[(int64_t(t) * N + i) * K + k];
+      if (touched[size_t(t) * N + i])
+        for (int k = 0; k < K; ++k) s[k] += gb[(int64_t(t) * N + i) * K + k];
     const double gext[2] = {double(gm2[2 * i]), double(gm2[2 * i + 1])};
     const bool drawn = rad[i] > 0;
     if (!drawn && gext[0] == 0.0 && gext[1] == 0.0) continue;
@@ -1351,10 +1361,12 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
   const int64_t M = gidx.size(0);
   const int tilesX = (cam.W + TILE - 1) / TILE, tilesY = (cam.H + TILE - 1) / TILE;
   const int K = G_COL + 3;
-  auto gbuf = at::zeros({nthreads, M, K}, at::kDouble);
+  auto gbuf = at::empty({nthreads, M, K}, at::kDouble);  // rows valid where ``touched``
+  std::vector<uint8_t> touched(size_t(nthreads) * M, 0);
   render_backward<S>(cam, 3, tilesX, tilesY, rec.data_ptr<S>(), col.data_ptr<S>(), offsets.data_ptr<int64_t>(),
                      ids.data_ptr<int32_t>(), acc.data_ptr<S>(), dn.data_ptr<S>(), aa.data_ptr<S>(),
-                     g_acc.data_ptr<S>(), g_dn.data_ptr<S>(), g_a.data_ptr<S>(), M, gbuf.data_ptr<double>(), nthreads);
+                     g_acc.data_ptr<S>(), g_dn.data_ptr<S>(), g_a.data_ptr<S>(), M, gbuf.data_ptr<double>(),
+                     touched.data(), nthreads);
   auto opts = at::TensorOptions().dtype(st);
   // Outputs: per group the gradients of means, quats, log-scales, opacity logits, sh0 and shN
   // (undefined, i.e. None, when the group uses no band above 0: its shN took no part, as in
@@ -1399,9 +1411,19 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
   double* gbw = gbuf.data_ptr<double>();
   // Sum the threads' buffers into the first, streaming in record order: the loop below then
   // reads one row per Gaussian at its record slot (depth order) instead of one per thread.
+  // Rows a thread never touched hold garbage and are skipped; untouched everywhere: zeros.
 #pragma omp parallel for schedule(static) num_threads(nthreads)
-  for (int64_t j = 0; j < M * K; ++j)
-    for (int t = 1; t < nthreads; ++t) gbw[j] += gbw[int64_t(t) * M * K + j];
+  for (int64_t m = 0; m < M; ++m) {
+    double* dst = gbw + m * K;
+    bool have = touched[size_t(m)];
+    for (int t = 1; t < nthreads; ++t) {
+      if (!touched[size_t(t) * M + m]) continue;
+      const double* src = gbw + (int64_t(t) * M + m) * K;
+      for (int k = 0; k < K; ++k) dst[k] = have ? dst[k] + src[k] : src[k];
+      have = true;
+    }
+    if (!have) std::fill_n(dst, K, 0.0);
+  }
   const double* gb = gbw;
   const int64_t* gi = gidx.data_ptr<int64_t>();
   const S* cc = col.data_ptr<S>();
