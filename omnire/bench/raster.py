@@ -288,7 +288,8 @@ def main(argv: list[str], plugins) -> int:
                       f"{r['backward_ms']:.1f}", f"{r['forward_ms'] + r['backward_ms']:.1f}",
                       f"{r['peak_extra_mb']:.0f}", f"{sp:.1f}x" if sp else "-", r.get("note", ""))
     console.print(table)
-    payload = dict(machine=machine_info(threads), device=str(device), threads=threads, repeats=args.repeats, warmup=args.warmup, reference=reference,
+    payload = dict(machine=machine_info(threads), device=str(device), threads=threads, repeats=args.repeats,
+                   warmup=args.warmup, reference=reference,
                    coverage=args.coverage, seed=args.seed, torch=torch.__version__,
                    time=time.strftime("%Y-%m-%dT%H:%M:%S"), results=results)
     write_json_atomic(args.output, payload)
