@@ -41,12 +41,14 @@ def _best_seconds(fn, repeats: int) -> float:
 def machine_info(threads: int) -> dict:
     """CPU model, logical cores, AVX2 / AVX-512, torch version, and the best of a few runs of
     a 64 MB tensor copy (GB/s read + written) and a 1024^3 fp32 matrix product (GFLOP/s), on
-    ``threads`` torch threads (restored afterwards). About a quarter of a second."""
+    ``threads`` torch threads (0: torch's current number; restored afterwards). About a
+    quarter of a second."""
     import torch
 
     model, flags = _cpuinfo()
     before = torch.get_num_threads()
-    torch.set_num_threads(max(1, threads))
+    threads = threads if threads > 0 else before
+    torch.set_num_threads(threads)
     try:
         src = torch.ones(16 * 1024 * 1024)  # 64 MB of float32: past the caches of a laptop or a server core
         dst = torch.empty_like(src)

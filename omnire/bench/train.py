@@ -272,7 +272,7 @@ def main(argv: list[str], plugins) -> int:
         previous = {tuple(r["command"]): r for r in json.loads((args.output / "results.json").read_text())["results"]
                     if r.get("exit_code") == 0}
     results = []
-    machine = machine_info(args.threads or 1)
+    machine = machine_info(args.threads)
     for m in methods:
         kept = previous.get(tuple(_command(args, m)[2:]))
         if kept is not None:
