@@ -1241,10 +1241,16 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
   const int W = cam.W, H = cam.H;
   const int tilesX = (W + TILE - 1) / TILE, tilesY = (H + TILE - 1) / TILE;
   auto opts = at::TensorOptions().dtype(st);
-  // per-Gaussian scratch (only drawn rows are written; radii says which)
+  // Per-Gaussian scratch, packed per chunk: the j-th drawn row of a chunk whose first row is
+  // k0 writes slot k0 + j (``row_of`` says which row), so the depth-order gather below reads
+  // a few dense runs instead of rows scattered over all N.
   auto rec_all = at::empty({N, REC}, opts);
   auto col_all = at::empty({N, 3}, opts);
   auto rect_all = at::empty({N, 4}, at::kInt);
+  auto depth_t = at::empty({N}, at::kFloat);
+  auto row_of_t = at::empty({N}, at::kLong);
+  float* depth_all = depth_t.data_ptr<float>();
+  int64_t* row_of = row_of_t.data_ptr<int64_t>();
   auto radii = at::empty({N}, at::kInt);
   auto means2d = at::empty({N, 2}, opts);
   S* recp = rec_all.data_ptr<S>();
@@ -1253,6 +1259,7 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
   int32_t* radp = radii.data_ptr<int32_t>();
   S* m2p = means2d.data_ptr<S>();
   const std::vector<Chunk> chunks = make_chunks(segs);
+  std::vector<int64_t> drawn(chunks.size(), 0);  // drawn rows per chunk
   int64_t bad = std::numeric_limits<int64_t>::max();
   int64_t rejected = 0;
   // Dynamic chunks of rows, as in forward_gaussians_impl (no result depends on them).
@@ -1260,6 +1267,8 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
   for (size_t ci = 0; ci < chunks.size(); ++ci) {
     const Segment& sg = segs[chunks[ci].seg];
     const RawGroup<S>& G = groups[sg.group];
+    const int64_t k0 = G.start + chunks[ci].begin;
+    int64_t n_drawn = 0;
     for (int64_t i = chunks[ci].begin; i < chunks[ci].end; ++i) {
       const int64_t k = G.start + i;
       const S *mp = G.means + 3 * i, *qp = G.quats + 4 * i, *sp = G.scales + 3 * i;
@@ -1284,12 +1293,13 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       if (!p.ok) continue;
       const S o = sigmoid_of(G.opac[i]);
       double r;
-      int32_t* rc = rectp + 4 * k;
+      const int64_t slot = k0 + n_drawn;  // written only if the row is drawn
+      int32_t* rc = rectp + 4 * slot;
       if (!radius_rect(p, tilesX, tilesY, &r, rc) || !(double(o) > 0.0)) continue;
       S d[3], b[16];
       view_dir(mp, center, sg.mv, d);
       sh_basis(G.deg, d, b);
-      S* col = colp + 3 * k;
+      S* col = colp + 3 * slot;
       const int nb = (G.deg + 1) * (G.deg + 1);
       bool col_ok = true;
       for (int c = 0; c < 3; ++c) {
@@ -1300,8 +1310,12 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       }
       if (!col_ok) { bad = std::min(bad, k); continue; }
       radp[k] = int32_t(r);
-      write_record(p, double(o), tilesX, tilesY, recp + REC * k, rc);
+      write_record(p, double(o), tilesX, tilesY, recp + REC * slot, rc);
+      depth_all[slot] = float(recp[REC * slot + 6]);
+      row_of[slot] = k;
+      ++n_drawn;
     }
+    drawn[ci] = n_drawn;
   }
   const int64_t first_bad = bad != std::numeric_limits<int64_t>::max() ? bad : -1;
   if (first_bad >= 0) {
@@ -1309,13 +1323,24 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
     return {e, e, e, at::zeros({0}, at::kInt), e, e, e, at::zeros({0}, at::kLong), at::zeros({1}, at::kLong),
             at::zeros({0}, at::kInt), at::full({1}, first_bad, at::kLong), at::zeros({1}, at::kLong)};
   }
-  // Compact the drawn Gaussians in front-to-back order (ties by row, so deterministic): each
-  // tile list then walks the records, and the backward its gradient rows, in increasing
-  // address order instead of jumping across the whole array.
-  std::vector<float> depth_all(N);
-#pragma omp parallel for schedule(static) num_threads(nthreads)
-  for (int64_t k = 0; k < N; ++k) depth_all[k] = radp[k] > 0 ? float(recp[REC * k + 6]) : 0.f;
-  std::vector<uint64_t> order = depth_order(N, depth_all.data(), radp);
+  // Compact the drawn Gaussians in front-to-back order (ties by row, so deterministic: slots
+  // increase with rows): each tile list then walks the records, and the backward its
+  // gradient rows, in increasing address order instead of jumping across the whole array.
+  std::vector<uint64_t> order;
+  {
+    int64_t total = 0;
+    for (int64_t n : drawn) total += n;
+    order.reserve(total);
+    for (size_t ci = 0; ci < chunks.size(); ++ci) {
+      const int64_t k0 = groups[segs[chunks[ci].seg].group].start + chunks[ci].begin;
+      for (int64_t slot = k0; slot < k0 + drawn[ci]; ++slot) {
+        uint32_t bits;
+        std::memcpy(&bits, &depth_all[slot], 4);
+        order.push_back((uint64_t(bits) << 32) | uint64_t(uint32_t(slot)));
+      }
+    }
+    sort_by_depth(order);
+  }
   const int64_t M = int64_t(order.size());
   auto gidx = at::empty({M}, at::kLong);
   int64_t* gi = gidx.data_ptr<int64_t>();
@@ -1326,13 +1351,14 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
   S* cc = col.data_ptr<S>();
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int64_t m = 0; m < M; ++m) {
-    const int64_t k = int64_t(order[m] & 0xFFFFFFFFu);
-    if (m + 16 < M) {  // rows are read in depth order, i.e. scattered: fetch ahead
+    const int64_t k = int64_t(order[m] & 0xFFFFFFFFu);  // a slot
+    if (m + 16 < M) {  // slots are read in depth order, i.e. scattered: fetch ahead
       const int64_t ka = int64_t(order[m + 16] & 0xFFFFFFFFu);
       prefetch_record(recp, colp, 3, ka);
       __builtin_prefetch(rectp + 4 * ka);
+      __builtin_prefetch(row_of + ka);
     }
-    gi[m] = k;
+    gi[m] = row_of[k];
     for (int j = 0; j < REC; ++j) rc[REC * m + j] = recp[REC * k + j];
     for (int j = 0; j < 3; ++j) cc[3 * m + j] = colp[3 * k + j];
     for (int j = 0; j < 4; ++j) rect_c[4 * m + j] = rectp[4 * k + j];
@@ -1455,6 +1481,7 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
         if (ma >= 0) {
           __builtin_prefetch(gb + ma * K);
           __builtin_prefetch(gb + ma * K + 8);
+          __builtin_prefetch(cc + 3 * ma);
         }
       }
       const int nbN = G.deg > 0 ? G.K1 : 0;  // shN rows written (all of them, bands above deg zero)
