@@ -383,21 +383,41 @@ std::pair<at::Tensor, at::Tensor> bin_ordered(const std::vector<uint64_t>& order
   const int64_t ntiles = int64_t(tilesX) * tilesY;
   auto offsets = at::zeros({ntiles + 1}, at::kLong);
   int64_t* off = offsets.data_ptr<int64_t>();
-  // Bands of tile rows, each scanned by one thread over the sorted list: no atomics, and the
-  // lists come out already depth-sorted.
+  // Bands of tile rows, each filled by one thread from the sorted list: no atomics, and the
+  // lists come out already depth-sorted. First each thread sorts its share of the list into
+  // per-band lists (keeping the order), so a band then reads only the Gaussians that touch it.
   const int nbands = std::max(1, std::min(tilesY, nthreads * 4));
   auto band_of = [&](int b) { return std::make_pair(int(int64_t(b) * tilesY / nbands), int(int64_t(b + 1) * tilesY / nbands)); };
+  std::vector<int> band_of_row(tilesY);
+  for (int b = 0; b < nbands; ++b)
+    for (int ty = band_of(b).first; ty < band_of(b).second; ++ty) band_of_row[ty] = b;
+  const int nparts = std::max(1, nthreads);
+  const int64_t M = int64_t(order.size());
+  std::vector<std::vector<int32_t>> part_band(size_t(nparts) * nbands);  // [part][band] -> indices in order
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+  for (int t = 0; t < nparts; ++t) {
+    for (int64_t q = M * t / nparts; q < M * (t + 1) / nparts; ++q) {
+      const int32_t i = int32_t(order[q] & 0xFFFFFFFFu);
+      const int32_t* rc = rect + 4 * int64_t(i);
+      if (rc[1] >= rc[3] || rc[0] >= rc[2]) continue;
+      for (int b = band_of_row[rc[1]]; b <= band_of_row[rc[3] - 1]; ++b) part_band[size_t(t) * nbands + b].push_back(i);
+    }
+  }
+  // every index of band b, in list order
+  auto for_band = [&](int b, auto&& fn) {
+    for (int t = 0; t < nparts; ++t)
+      for (int32_t i : part_band[size_t(t) * nbands + b]) fn(i);
+  };
   std::vector<int64_t> counts(ntiles, 0);
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
   for (int b = 0; b < nbands; ++b) {
     auto [r0, r1] = band_of(b);
-    for (uint64_t it : order) {
-      const int64_t i = int64_t(it & 0xFFFFFFFFu);
-      const int32_t* rc = rect + 4 * i;
+    for_band(b, [&](int32_t i) {
+      const int32_t* rc = rect + 4 * int64_t(i);
       const int ya = std::max(rc[1], r0), yb = std::min(rc[3], r1);
       for (int ty = ya; ty < yb; ++ty)
         for (int tx = rc[0]; tx < rc[2]; ++tx) ++counts[int64_t(ty) * tilesX + tx];
-    }
+    });
   }
   off[0] = 0;
   for (int64_t t = 0; t < ntiles; ++t) off[t + 1] = off[t] + counts[t];
@@ -407,14 +427,13 @@ std::pair<at::Tensor, at::Tensor> bin_ordered(const std::vector<uint64_t>& order
   for (int b = 0; b < nbands; ++b) {
     auto [r0, r1] = band_of(b);
     std::vector<int64_t> cur(off + int64_t(r0) * tilesX, off + int64_t(r1) * tilesX);
-    for (uint64_t it : order) {
-      const int64_t i = int64_t(it & 0xFFFFFFFFu);
-      const int32_t* rc = rect + 4 * i;
+    for_band(b, [&](int32_t i) {
+      const int32_t* rc = rect + 4 * int64_t(i);
       const int ya = std::max(rc[1], r0), yb = std::min(rc[3], r1);
       for (int ty = ya; ty < yb; ++ty)
         for (int tx = rc[0]; tx < rc[2]; ++tx)
-          idp[cur[int64_t(ty - r0) * tilesX + tx]++] = int32_t(i);
-    }
+          idp[cur[int64_t(ty - r0) * tilesX + tx]++] = i;
+    });
   }
   return {offsets, ids};
 }
