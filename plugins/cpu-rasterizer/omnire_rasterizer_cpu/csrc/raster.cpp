@@ -1500,7 +1500,6 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
         if (ma >= 0) {
           __builtin_prefetch(gb + ma * K);
           __builtin_prefetch(gb + ma * K + 8);
-          __builtin_prefetch(cc + 3 * ma);
         }
       }
       const int nbN = G.deg > 0 ? G.K1 : 0;  // shN rows written (all of them, bands above deg zero)
