@@ -1370,17 +1370,17 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
   S* cc = col.data_ptr<S>();
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int64_t m = 0; m < M; ++m) {
-    const int64_t k = int64_t(order[m] & 0xFFFFFFFFu);  // a slot
+    const int64_t slot = int64_t(order[m] & 0xFFFFFFFFu);
     if (m + 16 < M) {  // slots are read in depth order, i.e. scattered: fetch ahead
-      const int64_t ka = int64_t(order[m + 16] & 0xFFFFFFFFu);
-      prefetch_record(recp, colp, 3, ka);
-      __builtin_prefetch(rectp + 4 * ka);
-      __builtin_prefetch(row_of + ka);
+      const int64_t ahead = int64_t(order[m + 16] & 0xFFFFFFFFu);
+      prefetch_record(recp, colp, 3, ahead);
+      __builtin_prefetch(rectp + 4 * ahead);
+      __builtin_prefetch(row_of + ahead);
     }
-    gi[m] = row_of[k];
-    for (int j = 0; j < REC; ++j) rc[REC * m + j] = recp[REC * k + j];
-    for (int j = 0; j < 3; ++j) cc[3 * m + j] = colp[3 * k + j];
-    for (int j = 0; j < 4; ++j) rect_c[4 * m + j] = rectp[4 * k + j];
+    gi[m] = row_of[slot];
+    for (int j = 0; j < REC; ++j) rc[REC * m + j] = recp[REC * slot + j];
+    for (int j = 0; j < 3; ++j) cc[3 * m + j] = colp[3 * slot + j];
+    for (int j = 0; j < 4; ++j) rect_c[4 * m + j] = rectp[4 * slot + j];
     order[m] = (order[m] & ~uint64_t(0xFFFFFFFFu)) | uint64_t(uint32_t(m));  // now indexes the records
   }
   auto [offsets, ids] = bin_ordered(order, rect_c.data(), tilesX, tilesY, nthreads);
