@@ -1221,6 +1221,124 @@ inline S sigmoid_of(S x) { return S(1) / (S(1) + std::exp(-x)); }
 
 // One group of raw Gaussians: row-major pointers, its row count, SH bases beyond the DC
 // term (K1 = (deg + 1)^2 - 1) and the bands used (min(deg, requested)).
+// The gradients of a drawn row's mean, quaternion and log-free scales from those of its
+// conic, 2D mean and depth: project_one then project_backward_one, operation for operation
+// (the same numbers), for rows known to be drawn (in depth, conic defined), so without their
+// early exits. D = double runs one row; D = D4 four rows in the lanes of an AVX2 register.
+typedef double D4 __attribute__((vector_size(32)));
+inline double lane_sqrt(double x) { return std::sqrt(x); }
+inline D4 lane_sqrt(D4 x) { return D4(_mm256_sqrt_pd(__m256d(x))); }
+template <typename D> inline D splat(double x) { return D{} + x; }
+
+template <typename D>
+void drawn_row_gradients(const D mean[3], const D quat[4], const D scale[3], const Camera& cam, double eps2d,
+                         const D gconic[3], const D gm2d[2], D gz_depth, D gmean[3], D gquat[4], D gscale[3]) {
+  // ---- project_one
+  D t[3];
+  for (int i = 0; i < 3; ++i)
+    t[i] = cam.R[i * 3] * mean[0] + cam.R[i * 3 + 1] * mean[1] + cam.R[i * 3 + 2] * mean[2] + cam.t[i];
+  const D iz = 1.0 / t[2];
+  const D qnorm = lane_sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3]);
+  const auto unit = qnorm > QUAT_EPS;
+  const D iq = 1.0 / qnorm;
+  D qn[4];
+  for (int i = 0; i < 4; ++i) qn[i] = unit ? quat[i] * iq : splat<D>(i == 0 ? 1.0 : 0.0);
+  const D w = qn[0], x = qn[1], y = qn[2], zq = qn[3];
+  D R[9];
+  R[0] = 1 - 2 * (y * y + zq * zq); R[1] = 2 * (x * y - w * zq);     R[2] = 2 * (x * zq + w * y);
+  R[3] = 2 * (x * y + w * zq);     R[4] = 1 - 2 * (x * x + zq * zq); R[5] = 2 * (y * zq - w * x);
+  R[6] = 2 * (x * zq - w * y);     R[7] = 2 * (y * zq + w * x);     R[8] = 1 - 2 * (x * x + y * y);
+  D M[9];
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) M[i * 3 + j] = R[i * 3 + j] * scale[j];
+  D Sig3[6];
+  int k = 0;
+  for (int i = 0; i < 3; ++i)
+    for (int j = i; j < 3; ++j, ++k)
+      Sig3[k] = M[i * 3] * M[j * 3] + M[i * 3 + 1] * M[j * 3 + 1] + M[i * 3 + 2] * M[j * 3 + 2];
+  static const int sym[3][3] = {{0, 1, 2}, {1, 3, 4}, {2, 4, 5}};
+  const D ur = t[0] * iz, vr = t[1] * iz;
+  const D lxp = splat<D>(cam.lim_xp), lxn = splat<D>(-cam.lim_xn), lyp = splat<D>(cam.lim_yp), lyn = splat<D>(-cam.lim_yn);
+  const D umax = lxn < ur ? ur : lxn, vmax = lyn < vr ? vr : lyn;  // std::max(-lim, r)
+  const D u = umax < lxp ? umax : lxp, v = vmax < lyp ? vmax : lyp;  // std::min(lim, .)
+  const auto u_free = (ur > lxn) & (ur < lxp), v_free = (vr > lyn) & (vr < lyp);
+  const D J00 = cam.fx * iz, J02 = -cam.fx * u * iz, J11 = cam.fy * iz, J12 = -cam.fy * v * iz;
+  D T[6];
+  for (int j = 0; j < 3; ++j) {
+    T[j] = J00 * cam.R[j] + J02 * cam.R[6 + j];
+    T[3 + j] = J11 * cam.R[3 + j] + J12 * cam.R[6 + j];
+  }
+  D TS[6];
+  for (int r = 0; r < 2; ++r)
+    for (int j = 0; j < 3; ++j)
+      TS[r * 3 + j] = T[r * 3] * Sig3[sym[0][j]] + T[r * 3 + 1] * Sig3[sym[1][j]] + T[r * 3 + 2] * Sig3[sym[2][j]];
+  const D cov0 = TS[0] * T[0] + TS[1] * T[1] + TS[2] * T[2] + eps2d;
+  const D cov1 = TS[0] * T[3] + TS[1] * T[4] + TS[2] * T[5];
+  const D cov2 = TS[3] * T[3] + TS[4] * T[4] + TS[5] * T[5] + eps2d;
+  const D det = cov0 * cov2 - cov1 * cov1;
+  const D idet = 1.0 / det;
+  const D conic[3] = {cov2 * idet, -cov1 * idet, cov0 * idet};
+  // ---- project_backward_one
+  const D iz2 = iz * iz;
+  D gt[3] = {splat<D>(0.0), splat<D>(0.0), gz_depth};
+  gt[0] += gm2d[0] * cam.fx * iz;
+  gt[1] += gm2d[1] * cam.fy * iz;
+  gt[2] += -(gm2d[0] * cam.fx * t[0] + gm2d[1] * cam.fy * t[1]) * iz2;
+  const D C[4] = {conic[0], conic[1], conic[1], conic[2]};
+  const D Gc[4] = {gconic[0], 0.5 * gconic[1], 0.5 * gconic[1], gconic[2]};
+  D tmp[4], Gs[4];
+  for (int i = 0; i < 2; ++i)
+    for (int j = 0; j < 2; ++j) tmp[i * 2 + j] = C[i * 2] * Gc[j] + C[i * 2 + 1] * Gc[2 + j];
+  for (int i = 0; i < 2; ++i)
+    for (int j = 0; j < 2; ++j) Gs[i * 2 + j] = -(tmp[i * 2] * C[j] + tmp[i * 2 + 1] * C[2 + j]);
+  D GT[6];
+  for (int r = 0; r < 2; ++r)
+    for (int j = 0; j < 3; ++j) GT[r * 3 + j] = 2.0 * (Gs[r * 2] * TS[j] + Gs[r * 2 + 1] * TS[3 + j]);
+  D GS[9];
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) {
+      D acc = splat<D>(0.0);
+      for (int a = 0; a < 2; ++a)
+        for (int b = 0; b < 2; ++b) acc += T[a * 3 + i] * Gs[a * 2 + b] * T[b * 3 + j];
+      GS[i * 3 + j] = acc;
+    }
+  auto dJ = [&](int r, int c) {
+    return GT[r * 3] * cam.R[c * 3] + GT[r * 3 + 1] * cam.R[c * 3 + 1] + GT[r * 3 + 2] * cam.R[c * 3 + 2];
+  };
+  const D gJ00 = dJ(0, 0), gJ02 = dJ(0, 2), gJ11 = dJ(1, 1), gJ12 = dJ(1, 2);
+  gt[2] += (-gJ00 * cam.fx + gJ02 * cam.fx * u - gJ11 * cam.fy + gJ12 * cam.fy * v) * iz2;
+  const D gu = -gJ02 * cam.fx * iz, gv = -gJ12 * cam.fy * iz;
+  gt[0] = u_free ? gt[0] + gu * iz : gt[0];
+  gt[2] = u_free ? gt[2] - gu * t[0] * iz2 : gt[2];
+  gt[1] = v_free ? gt[1] + gv * iz : gt[1];
+  gt[2] = v_free ? gt[2] - gv * t[1] * iz2 : gt[2];
+  D GM[9];
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) {
+      D acc = splat<D>(0.0);
+      for (int c = 0; c < 3; ++c) acc += (GS[i * 3 + c] + GS[c * 3 + i]) * M[c * 3 + j];
+      GM[i * 3 + j] = acc;
+    }
+  D GR[9];
+  for (int j = 0; j < 3; ++j) {
+    D acc = splat<D>(0.0);
+    for (int i = 0; i < 3; ++i) {
+      acc += GM[i * 3 + j] * R[i * 3 + j];
+      GR[i * 3 + j] = GM[i * 3 + j] * scale[j];
+    }
+    gscale[j] = acc;
+  }
+  const D* G = GR;
+  D gq[4];
+  gq[0] = 2 * (-zq * G[1] + y * G[2] + zq * G[3] - x * G[5] - y * G[6] + x * G[7]);
+  gq[1] = 2 * (y * G[1] + zq * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + zq * G[6] + w * G[7] - 2 * x * G[8]);
+  gq[2] = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + zq * G[5] - w * G[6] + zq * G[7] - 2 * y * G[8]);
+  gq[3] = 2 * (-2 * zq * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * zq * G[4] + y * G[5] + x * G[6] + y * G[7]);
+  const D dot = gq[0] * w + gq[1] * x + gq[2] * y + gq[3] * zq;
+  for (int i = 0; i < 4; ++i) gquat[i] = unit ? (gq[i] - qn[i] * dot) * iq : splat<D>(0.0);
+  for (int j = 0; j < 3; ++j) gmean[j] = cam.R[j] * gt[0] + cam.R[3 + j] * gt[1] + cam.R[6 + j] * gt[2];
+}
+
 template <typename S>
 struct RawGroup {
   const S *means, *quats, *scales, *opac, *sh0, *shN;
@@ -1397,7 +1515,6 @@ template <typename S>
 std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& groups, const std::vector<int64_t>& block,
                                             int64_t N, const double center[3], const std::vector<Segment>& segs,
                                             const Camera& cam,
-                                            double near, double far,
                                             double eps2d, const at::Tensor& rec, const at::Tensor& col,
                                             const at::Tensor& gidx, const at::Tensor& offsets, const at::Tensor& ids,
                                             const at::Tensor& acc, const at::Tensor& dn, const at::Tensor& aa,
@@ -1490,46 +1607,15 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
     const Moved& mv = sg.mv;
     const size_t g = size_t(sg.group);
     const RawGroup<S>& G = groups[g];
-    for (int64_t i = chunks[ci].begin; i < chunks[ci].end; ++i) {
-      const int64_t k = G.start + i;
-      const int64_t m = slot[k];
-      // Records are in depth order, rows in row order: fetch a later row's sums ahead, the
-      // work per row is too long for the CPU to overlap these misses by itself.
-      if (i + 16 < G.n) {
-        const int64_t ma = slot[k + 16];
-        if (ma >= 0) {
-          __builtin_prefetch(gb + ma * K);
-          __builtin_prefetch(gb + ma * K + 8);
-        }
-      }
-      const int nbN = G.deg > 0 ? G.K1 : 0;  // shN rows written (all of them, bands above deg zero)
-      if (m < 0) {  // a run of rows not drawn: their gradients are 0, written array by array
-        int64_t e = i + 1;
-        while (e < chunks[ci].end && slot[G.start + e] < 0) ++e;
-        const int64_t n = e - i;
-        std::fill_n(gm[g] + 3 * i, 3 * n, S(0));
-        std::fill_n(gs[g] + 3 * i, 3 * n, S(0));
-        std::fill_n(g0[g] + 3 * i, 3 * n, S(0));
-        std::fill_n(gq[g] + 4 * i, 4 * n, S(0));
-        std::fill_n(go[g] + i, n, S(0));
-        if (nbN > 0) std::fill_n(gn[g] + 3 * int64_t(nbN) * i, 3 * int64_t(nbN) * n, S(0));
-        std::fill_n(pa + 2 * k, 2 * n, S(0));
-        i = e - 1;
-        continue;
-      }
-      double s[G_COL + 3];
-      for (int q = 0; q < K; ++q) s[q] = gb[m * K + q];
+    const int nbN = G.deg > 0 ? G.K1 : 0;  // shN rows written (all of them, bands above deg zero)
+    // A drawn row's gradients once those of its mean, quaternion and scales are known.
+    auto finish_row = [&](int64_t i, const double* s, const double gmean[3], const double gquat[4],
+                          const double gscale[3]) {
+      const int64_t k = G.start + i, m = slot[k];
       const S *mp = G.means + 3 * i, *qp = G.quats + 4 * i, *sp = G.scales + 3 * i;
-      const S sc[3] = {std::exp(sp[0]), std::exp(sp[1]), std::exp(sp[2])};
-      Proj p;
-      project_one(mp, qp, sc, sg.cam, near, far, eps2d, p);
-      const double gconic[3] = {s[G_CA], s[G_CB], s[G_CC]};
-      const double gm2[2] = {s[G_MX], s[G_MY]};
-      double gmean[3], gquat[4], gscale[3];
-      project_backward_one(p, sg.cam, gconic, gm2, s[G_Z], gmean, gquat, gscale);
       for (int j = 0; j < 3; ++j) {
         gm[g][3 * i + j] = S(gmean[j]);
-        gs[g][3 * i + j] = S(gscale[j] * double(sc[j]));  // d exp(x) / dx = exp(x)
+        gs[g][3 * i + j] = S(gscale[j] * double(std::exp(sp[j])));  // d exp(x) / dx = exp(x)
       }
       for (int j = 0; j < 4; ++j) gq[g][4 * i + j] = S(gquat[j]);
       const double o = double(sigmoid_of(G.opac[i]));
@@ -1556,7 +1642,69 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
       }
       pa[2 * k] = S(s[G_AX]);
       pa[2 * k + 1] = S(s[G_AY]);
+    };
+    // Drawn rows wait in fours: the projection's gradient runs on the four lanes of an AVX2
+    // register (drawn_row_gradients, the same numbers as one row at a time), then each row
+    // finishes in row order (the move sums add up in the same order).
+    int64_t batch[4];
+    double bs[4][G_COL + 3];
+    int nbatch = 0;
+    auto flush = [&]() {
+      if (nbatch == 0) return;
+      D4 mean[3], quat[4], scale[3], gconic[3], gm2[2], gz, gmean[3], gquat[4], gscale[3];
+      for (int l = 0; l < 4; ++l) {
+        const int src = l < nbatch ? l : 0;  // spare lanes repeat the first row
+        const int64_t i = batch[src];
+        const double* s = bs[src];
+        for (int j = 0; j < 3; ++j) {
+          mean[j][l] = double(G.means[3 * i + j]);
+          scale[j][l] = double(S(std::exp(G.scales[3 * i + j])));
+        }
+        for (int j = 0; j < 4; ++j) quat[j][l] = double(G.quats[4 * i + j]);
+        gconic[0][l] = s[G_CA]; gconic[1][l] = s[G_CB]; gconic[2][l] = s[G_CC];
+        gm2[0][l] = s[G_MX]; gm2[1][l] = s[G_MY];
+        gz[l] = s[G_Z];
+      }
+      drawn_row_gradients(mean, quat, scale, sg.cam, eps2d, gconic, gm2, gz, gmean, gquat, gscale);
+      for (int l = 0; l < nbatch; ++l) {
+        const double rm[3] = {gmean[0][l], gmean[1][l], gmean[2][l]};
+        const double rq[4] = {gquat[0][l], gquat[1][l], gquat[2][l], gquat[3][l]};
+        const double rs[3] = {gscale[0][l], gscale[1][l], gscale[2][l]};
+        finish_row(batch[l], bs[l], rm, rq, rs);
+      }
+      nbatch = 0;
+    };
+    for (int64_t i = chunks[ci].begin; i < chunks[ci].end; ++i) {
+      const int64_t k = G.start + i;
+      const int64_t m = slot[k];
+      // Records are in depth order, rows in row order: fetch a later row's sums ahead, the
+      // work per row is too long for the CPU to overlap these misses by itself.
+      if (i + 16 < G.n) {
+        const int64_t ma = slot[k + 16];
+        if (ma >= 0) {
+          __builtin_prefetch(gb + ma * K);
+          __builtin_prefetch(gb + ma * K + 8);
+        }
+      }
+      if (m < 0) {  // a run of rows not drawn: their gradients are 0, written array by array
+        int64_t e = i + 1;
+        while (e < chunks[ci].end && slot[G.start + e] < 0) ++e;
+        const int64_t n = e - i;
+        std::fill_n(gm[g] + 3 * i, 3 * n, S(0));
+        std::fill_n(gs[g] + 3 * i, 3 * n, S(0));
+        std::fill_n(g0[g] + 3 * i, 3 * n, S(0));
+        std::fill_n(gq[g] + 4 * i, 4 * n, S(0));
+        std::fill_n(go[g] + i, n, S(0));
+        if (nbN > 0) std::fill_n(gn[g] + 3 * int64_t(nbN) * i, 3 * int64_t(nbN) * n, S(0));
+        std::fill_n(pa + 2 * k, 2 * n, S(0));
+        i = e - 1;
+        continue;
+      }
+      batch[nbatch] = i;
+      for (int q = 0; q < K; ++q) bs[nbatch][q] = gb[m * K + q];
+      if (++nbatch == 4) flush();
     }
+    flush();
   }
   out.push_back(absgrad);
   if (any_move) {  // per segment [sum_rows g_mean x^T (3x3 row-major), sum_rows g_mean (3), dL/dqa (4)], unmoved frame
@@ -1760,12 +1908,13 @@ std::vector<at::Tensor> raster_backward_train(std::vector<at::Tensor> means, std
   int64_t N = 0;
   for (const int64_t n : group_rows) N += n;
   const int nt = clamp_threads(nthreads);
+  (void)near, (void)far;  // the forward's depth range: every row with a gradient passed it
   if (st == at::kFloat)
     return backward_train_impl<float>(raw_groups<float>(means, quats, scales, opac, sh0, shN, spans, int(sh_degree)), block, N, ctr,
-                                      segs, cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
+                                      segs, cam, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
                                       g_a, st, nt);
   return backward_train_impl<double>(raw_groups<double>(means, quats, scales, opac, sh0, shN, spans, int(sh_degree)), block, N, ctr,
-                                     segs, cam, near, far, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
+                                     segs, cam, eps2d, rec, col, gidx, offsets, ids, acc, dn, aa, g_acc, g_dn,
                                      g_a, st, nt);
 }
 
