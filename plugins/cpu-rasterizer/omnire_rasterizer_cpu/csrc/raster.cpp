@@ -1219,10 +1219,8 @@ inline void qa_gradient(const double qa[4], const double q[4], const double g[4]
 template <typename S>
 inline S sigmoid_of(S x) { return S(1) / (S(1) + std::exp(-x)); }
 
-// One group of raw Gaussians: row-major pointers, its row count, SH bases beyond the DC
-// term (K1 = (deg + 1)^2 - 1) and the bands used (min(deg, requested)).
-// The gradients of a drawn row's mean, quaternion and log-free scales from those of its
-// conic, 2D mean and depth: project_one then project_backward_one, operation for operation
+// The gradients of a drawn row's mean, quaternion and scales (not log-scales) from those
+// of its conic, 2D mean and depth: project_one then project_backward_one, operation for operation
 // (the same numbers), for rows known to be drawn (in depth, conic defined), so without their
 // early exits. D = double runs one row; D = D4 four rows in the lanes of an AVX2 register.
 typedef double D4 __attribute__((vector_size(32)));
@@ -1339,6 +1337,8 @@ void drawn_row_gradients(const D mean[3], const D quat[4], const D scale[3], con
   for (int j = 0; j < 3; ++j) gmean[j] = cam.R[j] * gt[0] + cam.R[3 + j] * gt[1] + cam.R[6 + j] * gt[2];
 }
 
+// One group of raw Gaussians: row-major pointers, its row count, SH bases beyond the DC
+// term (K1 = (deg + 1)^2 - 1) and the bands used (min(deg, requested)).
 template <typename S>
 struct RawGroup {
   const S *means, *quats, *scales, *opac, *sh0, *shN;
