@@ -157,22 +157,89 @@ Camera make_camera(const at::Tensor& viewmat, const at::Tensor& K, int W, int H)
   return c;
 }
 
-struct Proj {
+// Lanes: the projection and its backward are written once over a lane type D, double (one
+// row) or D4 (four rows in an AVX2 register; GCC vector extensions, elementwise operators,
+// comparisons give lane masks, `mask ? a : b` selects). Same operations, same numbers.
+typedef double D4 __attribute__((vector_size(32)));
+template <typename D> using MaskOf = decltype(D{} < D{});
+inline double lane_sqrt(double x) { return std::sqrt(x); }
+inline D4 lane_sqrt(D4 x) { return D4(_mm256_sqrt_pd(__m256d(x))); }
+template <typename D> inline D splat(double x) { return D{} + x; }
+
+// What the projection of a Gaussian in depth computes, and its backward reads.
+template <typename D>
+struct ProjCore {
+  D qn[4], qnorm, s[3];
+  D Rq[9], M[9], Sig3[6];  // Sig3: xx, xy, xz, yy, yz, zz
+  D t[3], u, v;            // camera-space mean, clamped x/z, y/z
+  MaskOf<D> unit, u_free, v_free;  // |q| > QUAT_EPS; x/z, y/z inside the clamp range
+  D T[6];                  // J * Rview (2x3)
+  D cov[3];                // 2D covariance a, b, c (with eps2d)
+  D det, conic[3];         // conic meaningful where det > 0
+};
+
+struct Proj : ProjCore<double> {
   bool in_depth;   // near <= z <= far: mean2d defined
   bool ok;         // conic defined and finite
-  double qn[4], qnorm, s[3];
-  double Rq[9], M[9], Sig3[6];  // Sig3: xx, xy, xz, yy, yz, zz
-  double t[3], u, v;            // camera-space mean, clamped x/z, y/z
-  bool u_clamped, v_clamped;
-  double T[6];                  // J * Rview (2x3)
-  double cov[3];                // 2D covariance a, b, c (with eps2d)
-  double det, conic[3];
   double m2d[2];
 };
 
 inline double sym3(const double* s, int i, int j) {
   static const int idx[3][3] = {{0, 1, 2}, {1, 3, 4}, {2, 4, 5}};
   return s[idx[i][j]];
+}
+
+// From the camera-space mean t (p.t, set by the caller) and iz = 1 / t_z: rotation, 3D and
+// 2D covariance, conic. Straight-line code (no lane exits): the caller decides validity.
+template <typename D>
+void project_core(const D quat[4], const D scale[3], D iz, const Camera& cam, double eps2d, ProjCore<D>& p) {
+  // Rotation of the normalised quaternion; |q| <= 1e-12 is the identity (zero gradient).
+  p.qnorm = lane_sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3]);
+  p.unit = p.qnorm > QUAT_EPS;
+  const D iq = 1.0 / p.qnorm;
+  for (int i = 0; i < 4; ++i) p.qn[i] = p.unit ? quat[i] * iq : splat<D>(i == 0 ? 1.0 : 0.0);
+  const D w = p.qn[0], x = p.qn[1], y = p.qn[2], zq = p.qn[3];
+  D* R = p.Rq;
+  R[0] = 1 - 2 * (y * y + zq * zq); R[1] = 2 * (x * y - w * zq);     R[2] = 2 * (x * zq + w * y);
+  R[3] = 2 * (x * y + w * zq);     R[4] = 1 - 2 * (x * x + zq * zq); R[5] = 2 * (y * zq - w * x);
+  R[6] = 2 * (x * zq - w * y);     R[7] = 2 * (y * zq + w * x);     R[8] = 1 - 2 * (x * x + y * y);
+  for (int j = 0; j < 3; ++j) p.s[j] = scale[j];
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) p.M[i * 3 + j] = R[i * 3 + j] * p.s[j];
+  // Sig3 = M M^T
+  int k = 0;
+  for (int i = 0; i < 3; ++i)
+    for (int j = i; j < 3; ++j, ++k)
+      p.Sig3[k] = p.M[i * 3] * p.M[j * 3] + p.M[i * 3 + 1] * p.M[j * 3 + 1] + p.M[i * 3 + 2] * p.M[j * 3 + 2];
+
+  const D ur = p.t[0] * iz, vr = p.t[1] * iz;
+  const D lxp = splat<D>(cam.lim_xp), lxn = splat<D>(-cam.lim_xn), lyp = splat<D>(cam.lim_yp), lyn = splat<D>(-cam.lim_yn);
+  const D umax = lxn < ur ? ur : lxn, vmax = lyn < vr ? vr : lyn;  // std::max(-lim, r)
+  p.u = umax < lxp ? umax : lxp;                                     // std::min(lim, .)
+  p.v = vmax < lyp ? vmax : lyp;
+  p.u_free = (ur > lxn) & (ur < lxp);
+  p.v_free = (vr > lyn) & (vr < lyp);
+  // J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]];  T = J * Rview
+  const D J00 = cam.fx * iz, J02 = -cam.fx * p.u * iz, J11 = cam.fy * iz, J12 = -cam.fy * p.v * iz;
+  for (int j = 0; j < 3; ++j) {
+    p.T[j] = J00 * cam.R[j] + J02 * cam.R[6 + j];
+    p.T[3 + j] = J11 * cam.R[3 + j] + J12 * cam.R[6 + j];
+  }
+  // cov = T Sig3 T^T (+ eps2d on the diagonal)
+  static const int sym[3][3] = {{0, 1, 2}, {1, 3, 4}, {2, 4, 5}};
+  D TS[6];  // T * Sig3 (2x3)
+  for (int r = 0; r < 2; ++r)
+    for (int j = 0; j < 3; ++j)
+      TS[r * 3 + j] = p.T[r * 3] * p.Sig3[sym[0][j]] + p.T[r * 3 + 1] * p.Sig3[sym[1][j]] +
+                      p.T[r * 3 + 2] * p.Sig3[sym[2][j]];
+  p.cov[0] = TS[0] * p.T[0] + TS[1] * p.T[1] + TS[2] * p.T[2] + eps2d;
+  p.cov[1] = TS[0] * p.T[3] + TS[1] * p.T[4] + TS[2] * p.T[5];
+  p.cov[2] = TS[3] * p.T[3] + TS[4] * p.T[4] + TS[5] * p.T[5] + eps2d;
+  p.det = p.cov[0] * p.cov[2] - p.cov[1] * p.cov[1];
+  const D idet = 1.0 / p.det;
+  p.conic[0] = p.cov[2] * idet;
+  p.conic[1] = -p.cov[1] * idet;
+  p.conic[2] = p.cov[0] * idet;
 }
 
 template <typename S>
@@ -194,58 +261,11 @@ void project_one(const S* mean, const S* quat, const S* scale, const Camera& cam
     p.in_depth = false;
     return;
   }
-
-  // Rotation of the normalised quaternion; |q| <= 1e-12 is the identity (zero gradient).
-  double q[4] = {double(quat[0]), double(quat[1]), double(quat[2]), double(quat[3])};
-  p.qnorm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-  if (p.qnorm > QUAT_EPS) {
-    const double iq = 1.0 / p.qnorm;
-    for (int i = 0; i < 4; ++i) p.qn[i] = q[i] * iq;
-  } else {
-    p.qn[0] = 1.0; p.qn[1] = p.qn[2] = p.qn[3] = 0.0;
-  }
-  const double w = p.qn[0], x = p.qn[1], y = p.qn[2], zq = p.qn[3];
-  double* R = p.Rq;
-  R[0] = 1 - 2 * (y * y + zq * zq); R[1] = 2 * (x * y - w * zq);     R[2] = 2 * (x * zq + w * y);
-  R[3] = 2 * (x * y + w * zq);     R[4] = 1 - 2 * (x * x + zq * zq); R[5] = 2 * (y * zq - w * x);
-  R[6] = 2 * (x * zq - w * y);     R[7] = 2 * (y * zq + w * x);     R[8] = 1 - 2 * (x * x + y * y);
-  for (int j = 0; j < 3; ++j) p.s[j] = double(scale[j]);
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) p.M[i * 3 + j] = R[i * 3 + j] * p.s[j];
-  // Sig3 = M M^T
-  int k = 0;
-  for (int i = 0; i < 3; ++i)
-    for (int j = i; j < 3; ++j, ++k)
-      p.Sig3[k] = p.M[i * 3] * p.M[j * 3] + p.M[i * 3 + 1] * p.M[j * 3 + 1] + p.M[i * 3 + 2] * p.M[j * 3 + 2];
-
-  const double ur = p.t[0] * iz, vr = p.t[1] * iz;
-  p.u = std::min(cam.lim_xp, std::max(-cam.lim_xn, ur));
-  p.v = std::min(cam.lim_yp, std::max(-cam.lim_yn, vr));
-  p.u_clamped = !(ur > -cam.lim_xn && ur < cam.lim_xp);
-  p.v_clamped = !(vr > -cam.lim_yn && vr < cam.lim_yp);
-  // J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]];  T = J * Rview
-  const double J00 = cam.fx * iz, J02 = -cam.fx * p.u * iz, J11 = cam.fy * iz, J12 = -cam.fy * p.v * iz;
-  for (int j = 0; j < 3; ++j) {
-    p.T[j] = J00 * cam.R[j] + J02 * cam.R[6 + j];
-    p.T[3 + j] = J11 * cam.R[3 + j] + J12 * cam.R[6 + j];
-  }
-  // cov = T Sig3 T^T (+ eps2d on the diagonal)
-  double TS[6];  // T * Sig3 (2x3)
-  for (int r = 0; r < 2; ++r)
-    for (int j = 0; j < 3; ++j)
-      TS[r * 3 + j] = p.T[r * 3] * sym3(p.Sig3, 0, j) + p.T[r * 3 + 1] * sym3(p.Sig3, 1, j) +
-                      p.T[r * 3 + 2] * sym3(p.Sig3, 2, j);
-  p.cov[0] = TS[0] * p.T[0] + TS[1] * p.T[1] + TS[2] * p.T[2] + eps2d;
-  p.cov[1] = TS[0] * p.T[3] + TS[1] * p.T[4] + TS[2] * p.T[5];
-  p.cov[2] = TS[3] * p.T[3] + TS[4] * p.T[4] + TS[5] * p.T[5] + eps2d;
-  p.det = p.cov[0] * p.cov[2] - p.cov[1] * p.cov[1];
-  if (!(p.det > 0.0) || !std::isfinite(p.det) || !std::isfinite(p.cov[0]) || !std::isfinite(p.cov[2]))
-    return;
-  const double idet = 1.0 / p.det;
-  p.conic[0] = p.cov[2] * idet;
-  p.conic[1] = -p.cov[1] * idet;
-  p.conic[2] = p.cov[0] * idet;
-  p.ok = std::isfinite(p.conic[0]) && std::isfinite(p.conic[1]) && std::isfinite(p.conic[2]);
+  const double q[4] = {double(quat[0]), double(quat[1]), double(quat[2]), double(quat[3])};
+  const double sc[3] = {double(scale[0]), double(scale[1]), double(scale[2])};
+  project_core(q, sc, iz, cam, eps2d, p);
+  p.ok = p.det > 0.0 && std::isfinite(p.det) && std::isfinite(p.cov[0]) && std::isfinite(p.cov[2]) &&
+         std::isfinite(p.conic[0]) && std::isfinite(p.conic[1]) && std::isfinite(p.conic[2]);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -732,89 +752,103 @@ void render_backward(const Camera& cam, int D, int tilesX, int tilesY, const S* 
   }
 }
 
-// Backward through the projection for one Gaussian (double). Inputs: dL/dconic (a, b, c as
-// stored, b being the off-diagonal), dL/dmean2d, dL/dz. Outputs dL/dmean, dL/dquat, dL/dscale.
-void project_backward_one(const Proj& p, const Camera& cam, const double gconic[3], const double gm2d[2],
-                          double gz_depth, double gmean[3], double gquat[4], double gscale[3]) {
-  for (int i = 0; i < 3; ++i) gmean[i] = gscale[i] = 0.0;
-  for (int i = 0; i < 4; ++i) gquat[i] = 0.0;
-  if (!p.in_depth) return;
-  const double iz = 1.0 / p.t[2], iz2 = iz * iz;  // multiplications after one division
-  double gt[3] = {0.0, 0.0, gz_depth};
+// Backward through the projection of Gaussians in depth, over lanes D (see ProjCore).
+// Inputs: dL/dconic (a, b, c as stored, b being the off-diagonal), dL/dmean2d, dL/dz;
+// ``with_cov``: the conic was defined (else only the 2D mean and depth pass gradients).
+// Outputs dL/dmean, dL/dquat, dL/dscale.
+template <typename D>
+void project_backward_core(const ProjCore<D>& p, const Camera& cam, const D gconic[3], const D gm2d[2], D gz_depth,
+                           bool with_cov, D gmean[3], D gquat[4], D gscale[3]) {
+  for (int i = 0; i < 3; ++i) gscale[i] = splat<D>(0.0);
+  for (int i = 0; i < 4; ++i) gquat[i] = splat<D>(0.0);
+  const D iz = 1.0 / p.t[2], iz2 = iz * iz;  // multiplications after one division
+  D gt[3] = {splat<D>(0.0), splat<D>(0.0), gz_depth};
   // mean2d = (fx tx/z + cx, fy ty/z + cy)
   gt[0] += gm2d[0] * cam.fx * iz;
   gt[1] += gm2d[1] * cam.fy * iz;
   gt[2] += -(gm2d[0] * cam.fx * p.t[0] + gm2d[1] * cam.fy * p.t[1]) * iz2;
-  if (p.ok) {
+  if (with_cov) {
     // conic = cov^-1: dL/dcov = -C Gc C with Gc symmetric (off-diagonal gets half of dL/db).
-    const double C[4] = {p.conic[0], p.conic[1], p.conic[1], p.conic[2]};
-    const double Gc[4] = {gconic[0], 0.5 * gconic[1], 0.5 * gconic[1], gconic[2]};
-    double tmp[4], Gs[4];
+    const D C[4] = {p.conic[0], p.conic[1], p.conic[1], p.conic[2]};
+    const D Gc[4] = {gconic[0], 0.5 * gconic[1], 0.5 * gconic[1], gconic[2]};
+    D tmp[4], Gs[4];
     for (int i = 0; i < 2; ++i)
       for (int j = 0; j < 2; ++j) tmp[i * 2 + j] = C[i * 2] * Gc[j] + C[i * 2 + 1] * Gc[2 + j];
     for (int i = 0; i < 2; ++i)
       for (int j = 0; j < 2; ++j) Gs[i * 2 + j] = -(tmp[i * 2] * C[j] + tmp[i * 2 + 1] * C[2 + j]);
     // cov = T Sig3 T^T: dT = 2 Gs T Sig3, dSig3 = T^T Gs T
-    double TS[6];
+    static const int sym[3][3] = {{0, 1, 2}, {1, 3, 4}, {2, 4, 5}};
+    D TS[6];
     for (int r = 0; r < 2; ++r)
       for (int j = 0; j < 3; ++j)
-        TS[r * 3 + j] = p.T[r * 3] * sym3(p.Sig3, 0, j) + p.T[r * 3 + 1] * sym3(p.Sig3, 1, j) +
-                        p.T[r * 3 + 2] * sym3(p.Sig3, 2, j);
-    double GT[6];
+        TS[r * 3 + j] = p.T[r * 3] * p.Sig3[sym[0][j]] + p.T[r * 3 + 1] * p.Sig3[sym[1][j]] +
+                        p.T[r * 3 + 2] * p.Sig3[sym[2][j]];
+    D GT[6];
     for (int r = 0; r < 2; ++r)
       for (int j = 0; j < 3; ++j) GT[r * 3 + j] = 2.0 * (Gs[r * 2] * TS[j] + Gs[r * 2 + 1] * TS[3 + j]);
-    double GS[9];
+    D GS[9];
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j) {
-        double s = 0.0;
+        D acc = splat<D>(0.0);
         for (int a = 0; a < 2; ++a)
-          for (int b = 0; b < 2; ++b) s += p.T[a * 3 + i] * Gs[a * 2 + b] * p.T[b * 3 + j];
-        GS[i * 3 + j] = s;
+          for (int b = 0; b < 2; ++b) acc += p.T[a * 3 + i] * Gs[a * 2 + b] * p.T[b * 3 + j];
+        GS[i * 3 + j] = acc;
       }
     // T = J Rview: dJ = dT Rview^T (only the 4 non-zero J entries matter)
     auto dJ = [&](int r, int c) {
       return GT[r * 3] * cam.R[c * 3] + GT[r * 3 + 1] * cam.R[c * 3 + 1] + GT[r * 3 + 2] * cam.R[c * 3 + 2];
     };
-    const double gJ00 = dJ(0, 0), gJ02 = dJ(0, 2), gJ11 = dJ(1, 1), gJ12 = dJ(1, 2);
+    const D gJ00 = dJ(0, 0), gJ02 = dJ(0, 2), gJ11 = dJ(1, 1), gJ12 = dJ(1, 2);
     // J00 = fx/z, J02 = -fx u/z, J11 = fy/z, J12 = -fy v/z, u = clamp(tx/z), v = clamp(ty/z)
     gt[2] += (-gJ00 * cam.fx + gJ02 * cam.fx * p.u - gJ11 * cam.fy + gJ12 * cam.fy * p.v) * iz2;
-    const double gu = -gJ02 * cam.fx * iz, gv = -gJ12 * cam.fy * iz;
-    if (!p.u_clamped) { gt[0] += gu * iz; gt[2] -= gu * p.t[0] * iz2; }
-    if (!p.v_clamped) { gt[1] += gv * iz; gt[2] -= gv * p.t[1] * iz2; }
+    const D gu = -gJ02 * cam.fx * iz, gv = -gJ12 * cam.fy * iz;
+    gt[0] = p.u_free ? gt[0] + gu * iz : gt[0];
+    gt[2] = p.u_free ? gt[2] - gu * p.t[0] * iz2 : gt[2];
+    gt[1] = p.v_free ? gt[1] + gv * iz : gt[1];
+    gt[2] = p.v_free ? gt[2] - gv * p.t[1] * iz2 : gt[2];
     // Sig3 = M M^T: dM = (GS + GS^T) M
-    double GM[9];
+    D GM[9];
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j) {
-        double s = 0.0;
-        for (int k = 0; k < 3; ++k) s += (GS[i * 3 + k] + GS[k * 3 + i]) * p.M[k * 3 + j];
-        GM[i * 3 + j] = s;
+        D acc = splat<D>(0.0);
+        for (int k = 0; k < 3; ++k) acc += (GS[i * 3 + k] + GS[k * 3 + i]) * p.M[k * 3 + j];
+        GM[i * 3 + j] = acc;
       }
     // M = Rq diag(s): dRq_ij = dM_ij s_j, ds_j = sum_i dM_ij Rq_ij
-    double GR[9];
+    D GR[9];
     for (int j = 0; j < 3; ++j) {
-      double acc = 0.0;
+      D acc = splat<D>(0.0);
       for (int i = 0; i < 3; ++i) {
         acc += GM[i * 3 + j] * p.Rq[i * 3 + j];
         GR[i * 3 + j] = GM[i * 3 + j] * p.s[j];
       }
       gscale[j] = acc;
     }
-    const double w = p.qn[0], x = p.qn[1], y = p.qn[2], zq = p.qn[3];
-    const double* G = GR;
-    double gq[4];
+    const D w = p.qn[0], x = p.qn[1], y = p.qn[2], zq = p.qn[3];
+    const D* G = GR;
+    D gq[4];
     gq[0] = 2 * (-zq * G[1] + y * G[2] + zq * G[3] - x * G[5] - y * G[6] + x * G[7]);
     gq[1] = 2 * (y * G[1] + zq * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + zq * G[6] + w * G[7] - 2 * x * G[8]);
     gq[2] = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + zq * G[5] - w * G[6] + zq * G[7] - 2 * y * G[8]);
     gq[3] = 2 * (-2 * zq * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * zq * G[4] + y * G[5] + x * G[6] + y * G[7]);
-    // q_hat = q / |q| (constant identity below QUAT_EPS)
-    if (p.qnorm > QUAT_EPS) {
-      const double dot = gq[0] * w + gq[1] * x + gq[2] * y + gq[3] * zq;
-      const double iq = 1.0 / p.qnorm;
-      for (int i = 0; i < 4; ++i) gquat[i] = (gq[i] - p.qn[i] * dot) * iq;
-    }
+    // q_hat = q / |q| (constant identity below QUAT_EPS: no gradient)
+    const D dot = gq[0] * w + gq[1] * x + gq[2] * y + gq[3] * zq;
+    const D iq = 1.0 / p.qnorm;
+    for (int i = 0; i < 4; ++i) gquat[i] = p.unit ? (gq[i] - p.qn[i] * dot) * iq : splat<D>(0.0);
   }
   // t = Rview m + tview
   for (int j = 0; j < 3; ++j) gmean[j] = cam.R[j] * gt[0] + cam.R[3 + j] * gt[1] + cam.R[6 + j] * gt[2];
+}
+
+// One Gaussian (double): zeros when it was not in depth.
+void project_backward_one(const Proj& p, const Camera& cam, const double gconic[3], const double gm2d[2],
+                          double gz_depth, double gmean[3], double gquat[4], double gscale[3]) {
+  if (!p.in_depth) {
+    for (int i = 0; i < 3; ++i) gmean[i] = gscale[i] = 0.0;
+    for (int i = 0; i < 4; ++i) gquat[i] = 0.0;
+    return;
+  }
+  project_backward_core(p, cam, gconic, gm2d, gz_depth, p.ok, gmean, gquat, gscale);
 }
 
 int clamp_threads(int64_t n) { return int(std::max<int64_t>(1, std::min<int64_t>(n, 256))); }
@@ -1219,122 +1253,18 @@ inline void qa_gradient(const double qa[4], const double q[4], const double g[4]
 template <typename S>
 inline S sigmoid_of(S x) { return S(1) / (S(1) + std::exp(-x)); }
 
-// The gradients of a drawn row's mean, quaternion and scales (not log-scales) from those
-// of its conic, 2D mean and depth: project_one then project_backward_one, operation for operation
-// (the same numbers), for rows known to be drawn (in depth, conic defined), so without their
-// early exits. D = double runs one row; D = D4 four rows in the lanes of an AVX2 register.
-typedef double D4 __attribute__((vector_size(32)));
-inline double lane_sqrt(double x) { return std::sqrt(x); }
-inline D4 lane_sqrt(D4 x) { return D4(_mm256_sqrt_pd(__m256d(x))); }
-template <typename D> inline D splat(double x) { return D{} + x; }
-
+// The gradients of drawn rows' means, quaternions and scales (not log-scales) from those of
+// their conics, 2D means and depths: project_one then project_backward_one without the
+// exits a drawn row never takes (it is in depth and its conic is defined), so that four rows
+// can share the lanes of D4.
 template <typename D>
 void drawn_row_gradients(const D mean[3], const D quat[4], const D scale[3], const Camera& cam, double eps2d,
                          const D gconic[3], const D gm2d[2], D gz_depth, D gmean[3], D gquat[4], D gscale[3]) {
-  // ---- project_one
-  D t[3];
+  ProjCore<D> p;
   for (int i = 0; i < 3; ++i)
-    t[i] = cam.R[i * 3] * mean[0] + cam.R[i * 3 + 1] * mean[1] + cam.R[i * 3 + 2] * mean[2] + cam.t[i];
-  const D iz = 1.0 / t[2];
-  const D qnorm = lane_sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3]);
-  const auto unit = qnorm > QUAT_EPS;
-  const D iq = 1.0 / qnorm;
-  D qn[4];
-  for (int i = 0; i < 4; ++i) qn[i] = unit ? quat[i] * iq : splat<D>(i == 0 ? 1.0 : 0.0);
-  const D w = qn[0], x = qn[1], y = qn[2], zq = qn[3];
-  D R[9];
-  R[0] = 1 - 2 * (y * y + zq * zq); R[1] = 2 * (x * y - w * zq);     R[2] = 2 * (x * zq + w * y);
-  R[3] = 2 * (x * y + w * zq);     R[4] = 1 - 2 * (x * x + zq * zq); R[5] = 2 * (y * zq - w * x);
-  R[6] = 2 * (x * zq - w * y);     R[7] = 2 * (y * zq + w * x);     R[8] = 1 - 2 * (x * x + y * y);
-  D M[9];
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) M[i * 3 + j] = R[i * 3 + j] * scale[j];
-  D Sig3[6];
-  int k = 0;
-  for (int i = 0; i < 3; ++i)
-    for (int j = i; j < 3; ++j, ++k)
-      Sig3[k] = M[i * 3] * M[j * 3] + M[i * 3 + 1] * M[j * 3 + 1] + M[i * 3 + 2] * M[j * 3 + 2];
-  static const int sym[3][3] = {{0, 1, 2}, {1, 3, 4}, {2, 4, 5}};
-  const D ur = t[0] * iz, vr = t[1] * iz;
-  const D lxp = splat<D>(cam.lim_xp), lxn = splat<D>(-cam.lim_xn), lyp = splat<D>(cam.lim_yp), lyn = splat<D>(-cam.lim_yn);
-  const D umax = lxn < ur ? ur : lxn, vmax = lyn < vr ? vr : lyn;  // std::max(-lim, r)
-  const D u = umax < lxp ? umax : lxp, v = vmax < lyp ? vmax : lyp;  // std::min(lim, .)
-  const auto u_free = (ur > lxn) & (ur < lxp), v_free = (vr > lyn) & (vr < lyp);
-  const D J00 = cam.fx * iz, J02 = -cam.fx * u * iz, J11 = cam.fy * iz, J12 = -cam.fy * v * iz;
-  D T[6];
-  for (int j = 0; j < 3; ++j) {
-    T[j] = J00 * cam.R[j] + J02 * cam.R[6 + j];
-    T[3 + j] = J11 * cam.R[3 + j] + J12 * cam.R[6 + j];
-  }
-  D TS[6];
-  for (int r = 0; r < 2; ++r)
-    for (int j = 0; j < 3; ++j)
-      TS[r * 3 + j] = T[r * 3] * Sig3[sym[0][j]] + T[r * 3 + 1] * Sig3[sym[1][j]] + T[r * 3 + 2] * Sig3[sym[2][j]];
-  const D cov0 = TS[0] * T[0] + TS[1] * T[1] + TS[2] * T[2] + eps2d;
-  const D cov1 = TS[0] * T[3] + TS[1] * T[4] + TS[2] * T[5];
-  const D cov2 = TS[3] * T[3] + TS[4] * T[4] + TS[5] * T[5] + eps2d;
-  const D det = cov0 * cov2 - cov1 * cov1;
-  const D idet = 1.0 / det;
-  const D conic[3] = {cov2 * idet, -cov1 * idet, cov0 * idet};
-  // ---- project_backward_one
-  const D iz2 = iz * iz;
-  D gt[3] = {splat<D>(0.0), splat<D>(0.0), gz_depth};
-  gt[0] += gm2d[0] * cam.fx * iz;
-  gt[1] += gm2d[1] * cam.fy * iz;
-  gt[2] += -(gm2d[0] * cam.fx * t[0] + gm2d[1] * cam.fy * t[1]) * iz2;
-  const D C[4] = {conic[0], conic[1], conic[1], conic[2]};
-  const D Gc[4] = {gconic[0], 0.5 * gconic[1], 0.5 * gconic[1], gconic[2]};
-  D tmp[4], Gs[4];
-  for (int i = 0; i < 2; ++i)
-    for (int j = 0; j < 2; ++j) tmp[i * 2 + j] = C[i * 2] * Gc[j] + C[i * 2 + 1] * Gc[2 + j];
-  for (int i = 0; i < 2; ++i)
-    for (int j = 0; j < 2; ++j) Gs[i * 2 + j] = -(tmp[i * 2] * C[j] + tmp[i * 2 + 1] * C[2 + j]);
-  D GT[6];
-  for (int r = 0; r < 2; ++r)
-    for (int j = 0; j < 3; ++j) GT[r * 3 + j] = 2.0 * (Gs[r * 2] * TS[j] + Gs[r * 2 + 1] * TS[3 + j]);
-  D GS[9];
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) {
-      D acc = splat<D>(0.0);
-      for (int a = 0; a < 2; ++a)
-        for (int b = 0; b < 2; ++b) acc += T[a * 3 + i] * Gs[a * 2 + b] * T[b * 3 + j];
-      GS[i * 3 + j] = acc;
-    }
-  auto dJ = [&](int r, int c) {
-    return GT[r * 3] * cam.R[c * 3] + GT[r * 3 + 1] * cam.R[c * 3 + 1] + GT[r * 3 + 2] * cam.R[c * 3 + 2];
-  };
-  const D gJ00 = dJ(0, 0), gJ02 = dJ(0, 2), gJ11 = dJ(1, 1), gJ12 = dJ(1, 2);
-  gt[2] += (-gJ00 * cam.fx + gJ02 * cam.fx * u - gJ11 * cam.fy + gJ12 * cam.fy * v) * iz2;
-  const D gu = -gJ02 * cam.fx * iz, gv = -gJ12 * cam.fy * iz;
-  gt[0] = u_free ? gt[0] + gu * iz : gt[0];
-  gt[2] = u_free ? gt[2] - gu * t[0] * iz2 : gt[2];
-  gt[1] = v_free ? gt[1] + gv * iz : gt[1];
-  gt[2] = v_free ? gt[2] - gv * t[1] * iz2 : gt[2];
-  D GM[9];
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) {
-      D acc = splat<D>(0.0);
-      for (int c = 0; c < 3; ++c) acc += (GS[i * 3 + c] + GS[c * 3 + i]) * M[c * 3 + j];
-      GM[i * 3 + j] = acc;
-    }
-  D GR[9];
-  for (int j = 0; j < 3; ++j) {
-    D acc = splat<D>(0.0);
-    for (int i = 0; i < 3; ++i) {
-      acc += GM[i * 3 + j] * R[i * 3 + j];
-      GR[i * 3 + j] = GM[i * 3 + j] * scale[j];
-    }
-    gscale[j] = acc;
-  }
-  const D* G = GR;
-  D gq[4];
-  gq[0] = 2 * (-zq * G[1] + y * G[2] + zq * G[3] - x * G[5] - y * G[6] + x * G[7]);
-  gq[1] = 2 * (y * G[1] + zq * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + zq * G[6] + w * G[7] - 2 * x * G[8]);
-  gq[2] = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + zq * G[5] - w * G[6] + zq * G[7] - 2 * y * G[8]);
-  gq[3] = 2 * (-2 * zq * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * zq * G[4] + y * G[5] + x * G[6] + y * G[7]);
-  const D dot = gq[0] * w + gq[1] * x + gq[2] * y + gq[3] * zq;
-  for (int i = 0; i < 4; ++i) gquat[i] = unit ? (gq[i] - qn[i] * dot) * iq : splat<D>(0.0);
-  for (int j = 0; j < 3; ++j) gmean[j] = cam.R[j] * gt[0] + cam.R[3 + j] * gt[1] + cam.R[6 + j] * gt[2];
+    p.t[i] = cam.R[i * 3] * mean[0] + cam.R[i * 3 + 1] * mean[1] + cam.R[i * 3 + 2] * mean[2] + cam.t[i];
+  project_core(quat, scale, 1.0 / p.t[2], cam, eps2d, p);
+  project_backward_core(p, cam, gconic, gm2d, gz_depth, true, gmean, gquat, gscale);
 }
 
 // One group of raw Gaussians: row-major pointers, its row count, SH bases beyond the DC
