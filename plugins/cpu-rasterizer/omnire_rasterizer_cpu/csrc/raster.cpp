@@ -184,10 +184,8 @@ struct Proj : ProjCore<double> {
   double m2d[2];
 };
 
-inline double sym3(const double* s, int i, int j) {
-  static const int idx[3][3] = {{0, 1, 2}, {1, 3, 4}, {2, 4, 5}};
-  return s[idx[i][j]];
-}
+// Index of entry (i, j) of a symmetric 3x3 matrix stored as xx, xy, xz, yy, yz, zz.
+constexpr int SYM3[3][3] = {{0, 1, 2}, {1, 3, 4}, {2, 4, 5}};
 
 // From the camera-space mean t (p.t, set by the caller) and iz = 1 / t_z: rotation, 3D and
 // 2D covariance, conic. Straight-line code (no lane exits): the caller decides validity.
@@ -226,12 +224,11 @@ void project_core(const D quat[4], const D scale[3], D iz, const Camera& cam, do
     p.T[3 + j] = J11 * cam.R[3 + j] + J12 * cam.R[6 + j];
   }
   // cov = T Sig3 T^T (+ eps2d on the diagonal)
-  static const int sym[3][3] = {{0, 1, 2}, {1, 3, 4}, {2, 4, 5}};
   D TS[6];  // T * Sig3 (2x3)
   for (int r = 0; r < 2; ++r)
     for (int j = 0; j < 3; ++j)
-      TS[r * 3 + j] = p.T[r * 3] * p.Sig3[sym[0][j]] + p.T[r * 3 + 1] * p.Sig3[sym[1][j]] +
-                      p.T[r * 3 + 2] * p.Sig3[sym[2][j]];
+      TS[r * 3 + j] = p.T[r * 3] * p.Sig3[SYM3[0][j]] + p.T[r * 3 + 1] * p.Sig3[SYM3[1][j]] +
+                      p.T[r * 3 + 2] * p.Sig3[SYM3[2][j]];
   p.cov[0] = TS[0] * p.T[0] + TS[1] * p.T[1] + TS[2] * p.T[2] + eps2d;
   p.cov[1] = TS[0] * p.T[3] + TS[1] * p.T[4] + TS[2] * p.T[5];
   p.cov[2] = TS[3] * p.T[3] + TS[4] * p.T[4] + TS[5] * p.T[5] + eps2d;
@@ -777,12 +774,11 @@ void project_backward_core(const ProjCore<D>& p, const Camera& cam, const D gcon
     for (int i = 0; i < 2; ++i)
       for (int j = 0; j < 2; ++j) Gs[i * 2 + j] = -(tmp[i * 2] * C[j] + tmp[i * 2 + 1] * C[2 + j]);
     // cov = T Sig3 T^T: dT = 2 Gs T Sig3, dSig3 = T^T Gs T
-    static const int sym[3][3] = {{0, 1, 2}, {1, 3, 4}, {2, 4, 5}};
     D TS[6];
     for (int r = 0; r < 2; ++r)
       for (int j = 0; j < 3; ++j)
-        TS[r * 3 + j] = p.T[r * 3] * p.Sig3[sym[0][j]] + p.T[r * 3 + 1] * p.Sig3[sym[1][j]] +
-                        p.T[r * 3 + 2] * p.Sig3[sym[2][j]];
+        TS[r * 3 + j] = p.T[r * 3] * p.Sig3[SYM3[0][j]] + p.T[r * 3 + 1] * p.Sig3[SYM3[1][j]] +
+                        p.T[r * 3 + 2] * p.Sig3[SYM3[2][j]];
     D GT[6];
     for (int r = 0; r < 2; ++r)
       for (int j = 0; j < 3; ++j) GT[r * 3 + j] = 2.0 * (Gs[r * 2] * TS[j] + Gs[r * 2 + 1] * TS[3 + j]);
