@@ -14,7 +14,8 @@ from pathlib import Path
 
 
 def _cpuinfo() -> tuple[str, set[str]]:
-    """(model name, flags) from /proc/cpuinfo; ("", set()) where there is none."""
+    """(model name, flags) from /proc/cpuinfo; without it (not Linux) the platform's
+    processor string and no flags."""
     try:
         text = Path("/proc/cpuinfo").read_text()
     except OSError:

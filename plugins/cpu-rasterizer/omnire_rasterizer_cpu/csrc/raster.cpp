@@ -1535,13 +1535,14 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
     const RawGroup<S>& G = groups[g];
     const int nbN = G.deg > 0 ? G.K1 : 0;  // shN rows written (all of them, bands above deg zero)
     // A drawn row's gradients once those of its mean, quaternion and scales are known.
-    auto finish_row = [&](int64_t i, const double* s, const double gmean[3], const double gquat[4],
-                          const double gscale[3]) {
+    // sc: the row's scales (exp of its log-scales), as drawn_row_gradients took them.
+    auto finish_row = [&](int64_t i, const double* s, const double sc[3], const double gmean[3],
+                          const double gquat[4], const double gscale[3]) {
       const int64_t k = G.start + i, m = slot[k];
-      const S *mp = G.means + 3 * i, *qp = G.quats + 4 * i, *sp = G.scales + 3 * i;
+      const S *mp = G.means + 3 * i, *qp = G.quats + 4 * i;
       for (int j = 0; j < 3; ++j) {
         gm[g][3 * i + j] = S(gmean[j]);
-        gs[g][3 * i + j] = S(gscale[j] * double(std::exp(sp[j])));  // d exp(x) / dx = exp(x)
+        gs[g][3 * i + j] = S(gscale[j] * sc[j]);  // d exp(x) / dx = exp(x)
       }
       for (int j = 0; j < 4; ++j) gq[g][4 * i + j] = S(gquat[j]);
       const double o = double(sigmoid_of(G.opac[i]));
@@ -1596,7 +1597,8 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
         const double rm[3] = {gmean[0][l], gmean[1][l], gmean[2][l]};
         const double rq[4] = {gquat[0][l], gquat[1][l], gquat[2][l], gquat[3][l]};
         const double rs[3] = {gscale[0][l], gscale[1][l], gscale[2][l]};
-        finish_row(batch[l], bs[l], rm, rq, rs);
+        const double rsc[3] = {scale[0][l], scale[1][l], scale[2][l]};
+        finish_row(batch[l], bs[l], rsc, rm, rq, rs);
       }
       nbatch = 0;
     };
