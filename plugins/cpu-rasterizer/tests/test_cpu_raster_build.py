@@ -10,7 +10,7 @@ import pytest
 from torch.utils import cpp_extension
 
 from omnire_rasterizer_cpu import available
-from omnire_rasterizer_cpu._build import _cpu_supports_avx2, build_directory, build_error_line
+from omnire_rasterizer_cpu._build import EXTENSION, build_directory, build_error_line
 
 
 def _have_compiler() -> bool:
@@ -20,7 +20,7 @@ def _have_compiler() -> bool:
 
 
 def test_extension_builds_on_a_machine_that_can_build_it():
-    avx2, why = _cpu_supports_avx2()
+    avx2, why = EXTENSION.cpu_supported()
     if not avx2:
         pytest.skip(why)
     if not _have_compiler():

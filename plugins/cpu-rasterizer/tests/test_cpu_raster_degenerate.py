@@ -203,7 +203,7 @@ def test_unavailable_extension_falls_back(monkeypatch):
     # A failed build must make the spec unavailable (with the reason), so auto skips it.
     from omnire_rasterizer_cpu import _build
 
-    monkeypatch.setattr(_build, "_state", {"error": "C++ extension failed to build: no compiler"})
+    monkeypatch.setattr(_build.EXTENSION, "state", {"error": "C++ extension failed to build: no compiler"})
     ok, reason = available("cpu")
     assert not ok and "no compiler" in reason
     plugins = load_plugins()

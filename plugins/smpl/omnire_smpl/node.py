@@ -59,15 +59,14 @@ from omnire.api import (
     gaussian_reach,
     init_gaussian_params,
     knn_scales,
-    quat_multiply,
-    rotmat_to_quat,
     segment_max,
     slerp_rotmats,
     train_frame_bracket,
 )
 from omnire_body.humanpose import neutral_body_pose
 from omnire_body.template import BodyTemplate, load_template
-from omnire_smpl.lbs import blend_transforms, forward_kinematics, sparse_weights
+from omnire_smpl.lbs import forward_kinematics, sparse_weights
+from omnire_smpl.skinning import skin_gaussians
 
 log = logging.getLogger("omnire.nodes.smpl")
 
@@ -302,11 +301,8 @@ class SMPLNode(ActorNode):
         # per-Gaussian copy of the box pose is needed.
         R_tot = R_box @ rots[:, 0]  # (P, 3, 3) body-to-world orientation
         A_world = R_tot[:, None] @ A + F.pad(t_box[:, None, :, None], (3, 0))  # (P, 24, 3, 4)
-        T = blend_transforms(A_world, slot, self.gaussian_buffers["skin_joints"][rows],
-                             self.gaussian_buffers["skin_weights"][rows])  # (M, 3, 4)
-        R_full = T[:, :, :3]
-        means = torch.einsum("mij,mj->mi", R_full, g.means) + T[:, :, 3]
-        quats = quat_multiply(rotmat_to_quat(R_full), g.quats)
+        means, quats = skin_gaussians(A_world, slot, self.gaussian_buffers["skin_joints"][rows],
+                                      self.gaussian_buffers["skin_weights"][rows], g.means, g.quats)
         return NodeOutput(dataclasses.replace(g, means=means, quats=quats), rows, t)
 
     def instance_reach(self, state: ActorState) -> torch.Tensor:
