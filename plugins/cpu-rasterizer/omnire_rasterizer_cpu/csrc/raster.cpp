@@ -265,6 +265,48 @@ void project_one(const S* mean, const S* quat, const S* scale, const Camera& cam
          std::isfinite(p.conic[0]) && std::isfinite(p.conic[1]) && std::isfinite(p.conic[2]);
 }
 
+// project_one of n <= 4 rows at once on the lanes of D4 (spare lanes repeat the first row):
+// the same numbers per row; of each Proj only what the forward reads afterwards is set
+// (t, cov, det, conic, m2d, in_depth, ok).
+template <typename S>
+void project_four(const S* const mean[4], const S* const quat[4], const S scale[4][3], int n, const Camera& cam,
+                  double near, double far, double eps2d, Proj out[4]) {
+  D4 m[3], q[4], sc[3];
+  for (int l = 0; l < 4; ++l) {
+    const int src = l < n ? l : 0;
+    for (int j = 0; j < 3; ++j) {
+      m[j][l] = double(mean[src][j]);
+      sc[j][l] = double(scale[src][j]);
+    }
+    for (int j = 0; j < 4; ++j) q[j][l] = double(quat[src][j]);
+  }
+  ProjCore<D4> p;
+  for (int i = 0; i < 3; ++i) p.t[i] = cam.R[i * 3] * m[0] + cam.R[i * 3 + 1] * m[1] + cam.R[i * 3 + 2] * m[2] + cam.t[i];
+  const D4 iz = 1.0 / p.t[2];
+  project_core(q, sc, iz, cam, eps2d, p);
+  for (int l = 0; l < n; ++l) {
+    Proj& o = out[l];
+    for (int i = 0; i < 3; ++i) o.t[i] = p.t[i][l];
+    const double z = o.t[2];
+    o.in_depth = (z > near && z < far && z > 0.0);
+    o.ok = false;
+    if (!o.in_depth) continue;
+    o.m2d[0] = cam.fx * o.t[0] * iz[l] + cam.cx;
+    o.m2d[1] = cam.fy * o.t[1] * iz[l] + cam.cy;
+    if (!std::isfinite(o.m2d[0]) || !std::isfinite(o.m2d[1])) {
+      o.in_depth = false;
+      continue;
+    }
+    for (int i = 0; i < 3; ++i) {
+      o.cov[i] = p.cov[i][l];
+      o.conic[i] = p.conic[i][l];
+    }
+    o.det = p.det[l];
+    o.ok = o.det > 0.0 && std::isfinite(o.det) && std::isfinite(o.cov[0]) && std::isfinite(o.cov[2]) &&
+           std::isfinite(o.conic[0]) && std::isfinite(o.conic[1]) && std::isfinite(o.conic[2]);
+  }
+}
+
 // ---------------------------------------------------------------------------------------
 // Forward projection + binning.
 // Narrow a tile rect [x0, x1) x [y0, y1) (from the 3-sigma radius, which decides whether a
@@ -1332,6 +1374,50 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
     const RawGroup<S>& G = groups[sg.group];
     const int64_t k0 = G.start + chunks[ci].begin;
     int64_t n_drawn = 0;
+    // A projected row's record, rect and colour, in row order (slots follow rows).
+    auto finish = [&](int64_t i, const Proj& p) {
+      const int64_t k = G.start + i;
+      const S* mp = G.means + 3 * i;
+      if (p.in_depth) { m2p[2 * k] = S(p.m2d[0]); m2p[2 * k + 1] = S(p.m2d[1]); }
+      if (!p.ok) return;
+      const S o = sigmoid_of(G.opac[i]);
+      double r;
+      const int64_t slot = k0 + n_drawn;  // written only if the row is drawn
+      int32_t* rc = rectp + 4 * slot;
+      if (!radius_rect(p, tilesX, tilesY, &r, rc) || !(double(o) > 0.0)) return;
+      S d[3], b[16];
+      view_dir(mp, center, sg.mv, d);
+      sh_basis(G.deg, d, b);
+      S* col = colp + 3 * slot;
+      const int nb = (G.deg + 1) * (G.deg + 1);
+      bool col_ok = true;
+      for (int c = 0; c < 3; ++c) {
+        S v = b[0] * G.sh0[3 * i + c];
+        for (int j = 1; j < nb; ++j) v += b[j] * G.shN[(int64_t(G.K1) * i + (j - 1)) * 3 + c];
+        col[c] = std::max(v + S(0.5), S(0));
+        col_ok = col_ok && std::isfinite(double(col[c]));
+      }
+      if (!col_ok) { bad = std::min(bad, k); return; }
+      radp[k] = int32_t(r);
+      write_record(p, double(o), tilesX, tilesY, recp + REC * slot, rc);
+      depth_all[slot] = float(recp[REC * slot + 6]);
+      row_of[slot] = k;
+      ++n_drawn;
+    };
+    // Rows past the culling wait in fours: their projections share the lanes of D4
+    // (project_four, project_one's numbers), then each finishes in row order.
+    int64_t pend[4];
+    const S* pmean[4];
+    const S* pquat[4];
+    S pscale[4][3];
+    int npend = 0;
+    auto flush = [&]() {
+      if (npend == 0) return;
+      Proj p[4];
+      project_four(pmean, pquat, pscale, npend, sg.cam, near, far, eps2d, p);
+      for (int l = 0; l < npend; ++l) finish(pend[l], p[l]);
+      npend = 0;
+    };
     for (int64_t i = chunks[ci].begin; i < chunks[ci].end; ++i) {
       const int64_t k = G.start + i;
       const S *mp = G.means + 3 * i, *qp = G.quats + 4 * i, *sp = G.scales + 3 * i;
@@ -1349,35 +1435,14 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
         ++rejected;
         continue;
       }
-      const S sc[3] = {std::exp(sp[0]), std::exp(sp[1]), std::exp(sp[2])};
-      Proj p;
-      project_one(mp, qp, sc, sg.cam, near, far, eps2d, p);
-      if (p.in_depth) { m2p[2 * k] = S(p.m2d[0]); m2p[2 * k + 1] = S(p.m2d[1]); }
-      if (!p.ok) continue;
-      const S o = sigmoid_of(G.opac[i]);
-      double r;
-      const int64_t slot = k0 + n_drawn;  // written only if the row is drawn
-      int32_t* rc = rectp + 4 * slot;
-      if (!radius_rect(p, tilesX, tilesY, &r, rc) || !(double(o) > 0.0)) continue;
-      S d[3], b[16];
-      view_dir(mp, center, sg.mv, d);
-      sh_basis(G.deg, d, b);
-      S* col = colp + 3 * slot;
-      const int nb = (G.deg + 1) * (G.deg + 1);
-      bool col_ok = true;
-      for (int c = 0; c < 3; ++c) {
-        S v = b[0] * G.sh0[3 * i + c];
-        for (int j = 1; j < nb; ++j) v += b[j] * G.shN[(int64_t(G.K1) * i + (j - 1)) * 3 + c];
-        col[c] = std::max(v + S(0.5), S(0));
-        col_ok = col_ok && std::isfinite(double(col[c]));
-      }
-      if (!col_ok) { bad = std::min(bad, k); continue; }
-      radp[k] = int32_t(r);
-      write_record(p, double(o), tilesX, tilesY, recp + REC * slot, rc);
-      depth_all[slot] = float(recp[REC * slot + 6]);
-      row_of[slot] = k;
-      ++n_drawn;
+      const int l = npend++;
+      pend[l] = i;
+      pmean[l] = mp;
+      pquat[l] = qp;
+      for (int j = 0; j < 3; ++j) pscale[l][j] = std::exp(sp[j]);
+      if (npend == 4) flush();
     }
+    flush();
     drawn[ci] = n_drawn;
   }
   const int64_t first_bad = bad != std::numeric_limits<int64_t>::max() ? bad : -1;
