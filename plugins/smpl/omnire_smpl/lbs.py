@@ -11,6 +11,17 @@ from __future__ import annotations
 import torch
 
 
+def kinematic_levels(parents: list[int]) -> list[list[int]]:
+    """Joints grouped by depth in the tree (level 0: the root), each level's joints increasing.
+    Every joint's parent is in the level before its own."""
+    depth = [0] * len(parents)
+    for j in range(1, len(parents)):
+        if not 0 <= parents[j] < j:
+            raise ValueError(f"parents[{j}] = {parents[j]}: expected a parent index in [0, {j})")
+        depth[j] = depth[parents[j]] + 1
+    return [[j for j in range(len(parents)) if depth[j] == d] for d in range(max(depth) + 1)]
+
+
 def forward_kinematics(joints: torch.Tensor, parents: list[int], rots: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Posed joints and skinning transforms of P bodies.
 
@@ -21,16 +32,27 @@ def forward_kinematics(joints: torch.Tensor, parents: list[int], rots: torch.Ten
     Returns:
         posed joints (P, 24, 3) and skinning transforms A (P, 24, 3, 4) with
         A_j = G_j [I | -J_j] (the joint's world transform with the rest placement removed).
+
+    The chain runs one tree level at a time (9 levels for SMPL's 24 joints): a level's
+    joints take their parents' world transforms together, so the forward and backward pass
+    are a few batched products per level instead of per joint (the same products).
     """
-    R_world = [rots[:, 0]]
-    t_world = [joints[:, 0]]
-    for j in range(1, joints.shape[1]):
-        p = parents[j]
-        offset = joints[:, j] - joints[:, p]  # bone in the rest pose
-        R_world.append(R_world[p] @ rots[:, j])
-        t_world.append(t_world[p] + (R_world[p] @ offset[..., None])[..., 0])
-    R = torch.stack(R_world, 1)  # (P, 24, 3, 3)
-    t = torch.stack(t_world, 1)  # (P, 24, 3)
+    levels = kinematic_levels(parents)
+    J = joints.shape[1]
+    offset = joints[:, 1:] - joints[:, parents[1:]]  # (P, J - 1, 3) bones in the rest pose
+    R_lv, t_lv = [rots[:, :1]], [joints[:, :1]]  # per level: (P, n, 3, 3), (P, n, 3)
+    for prev, level in zip(levels, levels[1:]):
+        slot = {j: k for k, j in enumerate(prev)}
+        up = torch.tensor([slot[parents[j]] for j in level], device=joints.device)
+        here = torch.tensor(level, device=joints.device)
+        R_up, t_up = R_lv[-1].index_select(1, up), t_lv[-1].index_select(1, up)
+        R_lv.append(R_up @ rots.index_select(1, here))
+        t_lv.append(t_up + (R_up @ offset.index_select(1, here - 1)[..., None])[..., 0])
+    order = torch.tensor([j for level in levels for j in level], device=joints.device)
+    back = torch.empty_like(order)
+    back[order] = torch.arange(J, device=joints.device)  # joint j sits at back[j] of the levels' concatenation
+    R = torch.cat(R_lv, 1).index_select(1, back)  # (P, 24, 3, 3)
+    t = torch.cat(t_lv, 1).index_select(1, back)  # (P, 24, 3)
     A = torch.cat([R, (t - (R @ joints[..., None])[..., 0])[..., None]], dim=-1)
     return t, A
 

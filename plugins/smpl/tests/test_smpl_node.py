@@ -9,6 +9,7 @@ import torch
 
 from omnire.geometry import axis_angle_to_rotmat
 from omnire_body import lbs, load_template
+from omnire_body import forward_kinematics as numpy_forward_kinematics
 from omnire.data.images import ImageCache
 from omnire.data.scene import ActorTrack, HumanPoseSequence
 from omnire_body.humanpose import BODY_TO_BOX
@@ -19,7 +20,7 @@ from omnire.nodes.base import NodeContext
 from omnire.plugins import load_plugins
 from omnire.strategy import DensifyConfig
 from omnire.trainer import TrainConfig, Trainer, TrainerConfig
-from omnire_smpl.lbs import blend_transforms, forward_kinematics, sparse_weights
+from omnire_smpl.lbs import blend_transforms, forward_kinematics, kinematic_levels, sparse_weights
 from omnire_smpl.node import SMPLConfig, SMPLNode, person_template
 from omnire_smpl.plugin import accepts, prepare_scene
 
@@ -59,6 +60,24 @@ def test_identity_pose_returns_template():
     v = torch.as_tensor(t.vertices, dtype=torch.float32)
     out = torch.einsum("mij,mj->mi", T[:, :, :3], v) + T[:, :, 3]
     torch.testing.assert_close(out, v, atol=1e-5, rtol=0)
+
+
+def test_forward_kinematics_by_levels_matches_the_numpy_chain_in_float64():
+    """The level-at-a-time chain against omnire_body's joint-by-joint float64 reference:
+    posed joints and skinning transforms, on a tree whose levels are not contiguous."""
+    t = load_template()
+    assert [len(level) for level in kinematic_levels([int(p) for p in t.parents])][:2] == [1, 3]
+    rng = np.random.default_rng(5)
+    go = axis_angle_to_rotmat(rng.normal(0, 0.8, (3, 3)))
+    bp = axis_angle_to_rotmat(rng.normal(0, 0.6, (3, 23, 3)))
+    posed_ref, skin_ref = numpy_forward_kinematics(t.joints, t.parents, go, bp)
+    J = torch.as_tensor(np.broadcast_to(t.joints, (3, 24, 3)).copy())
+    rots = torch.as_tensor(np.concatenate([go[:, None], bp], 1))
+    posed, A = forward_kinematics(J, [int(p) for p in t.parents], rots)
+    np.testing.assert_allclose(posed.numpy(), posed_ref, atol=1e-12)
+    np.testing.assert_allclose(A.numpy(), skin_ref[:, :, :3], atol=1e-12)
+    with pytest.raises(ValueError, match=r"parents\[2\] = 3"):
+        kinematic_levels([-1, 0, 3, 1])
 
 
 def test_batched_lbs_matches_numpy_reference():
