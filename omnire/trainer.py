@@ -26,6 +26,7 @@ from omnire.data.scene import SceneData, SceneTime, View
 from omnire.errors import ConfigError, UserError
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
 from omnire.losses import LossContext, masked_mean, ssim_map
+from omnire.shbands import fit_sh_bands
 from omnire.observations import Observations
 from omnire.resolution import downscale_factor
 from omnire.optim import Optimizers
@@ -122,6 +123,7 @@ class Trainer:
         self.test_views = self.scene.views(self.scene.test_frames)
         self.step = 0
         self.train_seconds = 0.0
+        self._sh_bands_degree: Optional[int] = None  # the degree fit_sh_bands last stored bands for
         self.observers: list = []
         self._stop_signal: Optional[int] = None
         if resume_state is not None:
@@ -192,6 +194,16 @@ class Trainer:
     def sh_degree(self) -> int:
         return self.recon.sh_degree(self.step)
 
+    def fit_sh_bands(self, discard_unused: bool = False) -> dict[str, tuple[int, int]]:
+        """Store the nodes' SH bands up to the current degree (omnire/shbands.py): columns
+        appended when the degree rises, unused zero columns dropped. Returns the nodes changed."""
+        degree = self.sh_degree()
+        if degree == self._sh_bands_degree and not discard_unused:
+            return {}
+        changed = fit_sh_bands(self.model.gaussian_nodes(), self.optimizers, degree, discard_unused)
+        self._sh_bands_degree = degree
+        return changed
+
     # ------------------------------------------------------------------ training
     def loss_context(self, view: View, result, factor: int = 1) -> LossContext:
         """What the losses compare ``result`` (rendered at 1 / ``factor`` resolution) with."""
@@ -248,6 +260,7 @@ class Trainer:
     def train_step(self, view: Optional[View] = None) -> dict[str, float]:
         """One optimisation step on ``view`` (default: a sampled training view)."""
         view = self.sample_view() if view is None else view
+        self.fit_sh_bands()
         factor = self.resolution_factor()
         camera = self.recon.camera(view).downscaled(factor)
         t = self.recon.time(view.frame)
@@ -423,6 +436,7 @@ class Trainer:
         self.sampler.set_state(state["rng_sampler"])
         self.step = int(state["step"])
         self.train_seconds = float(state.get("train_seconds", 0.0))
+        self._sh_bands_degree = None
 
 
 def _comparable(config) -> dict:

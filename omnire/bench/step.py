@@ -5,7 +5,9 @@ optionally loads a trained run's checkpoint (``--checkpoint``: its Gaussians, op
 and step; the run must have the same method settings and data selection), optionally
 resizes the background node to ``--gaussians`` rows (seeded resampling with replacement of
 its rows, optimiser state carried along) and puts the step counter at ``--at-step`` (SH
-bands and schedules as at that step; densification is not run during the benchmark). The
+bands and schedules as at that step, and the SH coefficients stored as training stores them
+then: up to that step's degree, see omnire/shbands.py; densification is not run during the
+benchmark). The
 recorded data of every view it will use is decoded first (a training run has its images
 cached after the first pass over the views). Then it times ``--steps`` steps stage by stage:
 
@@ -37,6 +39,7 @@ import tyro
 from omnire.errors import ConfigError
 from omnire.bench.machine import machine_info, machine_line
 from omnire.io.atomic import atomic_write_text
+from omnire.shbands import sh_columns
 from omnire.ui import output_console
 
 STAGES = ("nodes", "render", "loss", "backward", "densify_stats", "optimizer")
@@ -184,6 +187,9 @@ def run(args: StepBenchArgs, plugins) -> dict:
         resize_background(trainer, args.gaussians, args.seed)
     at_step = args.at_step if args.at_step is not None else trainer.step  # 0, or the checkpoint's
     trainer.step = trainer.recon.step = at_step
+    # SH bands as training at ``at_step`` stores them (omnire/shbands.py); a checkpoint of a
+    # later degree loses its higher bands here, which that step would not have yet
+    trainer.fit_sh_bands(discard_unused=True)
     g = torch.Generator().manual_seed(args.seed)
     views = [trainer.train_views[int(torch.randint(len(trainer.train_views), (1,), generator=g))]
              for _ in range(args.warmup + args.steps)]
@@ -207,6 +213,7 @@ def run(args: StepBenchArgs, plugins) -> dict:
         "checkpoint": None if args.checkpoint is None else str(args.checkpoint),
         "sh_degree": trainer.recon.sh_degree(at_step), "gaussians": model.num_gaussians(),
         "gaussians_by_node": {n: m.num_gaussians for n, m in model.gaussian_nodes().items()},
+        "sh_columns_by_node": sh_columns(model.gaussian_nodes()),
         "warmup": args.warmup, "steps": args.steps,
         "paths": {p: {**{k: summarize(v) for k, v in samples[p].items()}, "total_cpu": summarize(cpu_total[p])}
                   for p in paths},
