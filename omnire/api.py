@@ -35,6 +35,7 @@ from omnire.geometry import (
 from omnire.hookspecs import hookimpl
 from omnire.interpolation import bracket, interpolate_poses, interpolate_track
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
+from omnire.io.cache import user_cache_dir
 from omnire.io.images import write_png
 from omnire.losses import LossContext
 from omnire.method import MethodConfig
@@ -100,7 +101,7 @@ __all__ = [
     "init_background_params", "init_gaussian_params", "interpolate_poses", "interpolate_track", "invert_se3",
     "knn_scales", "lidar_points_for_init", "points_in_box", "positional_encoding", "quat_multiply",
     "quat_to_rotmat", "rgb_to_sh0", "rot_z", "rotmat_to_axis_angle", "rotmat_to_quat", "slerp_rotmats",
-    "to_tensor", "track_displacement", "train_frame_bracket", "transform_instances", "usable_track",
+    "to_tensor", "track_displacement", "train_frame_bracket", "transform_instances", "usable_track", "user_cache_dir",
     "placed_output", "Placement",
     "visible_in_cameras", "voxel_downsample", "write_png",
 ]

@@ -21,22 +21,19 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
-import os
 import threading
 from pathlib import Path
 from types import ModuleType
 from typing import Optional, Sequence
+
+from omnire.io.cache import user_cache_dir
 
 log = logging.getLogger(__name__)
 
 
 def cache_dir() -> Path:
     """Root of the extension cache (see the module docstring)."""
-    root = os.environ.get("OMNIRE_EXTENSIONS_DIR")
-    if root:
-        return Path(root)
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "omnire" / "extensions"
+    return user_cache_dir("extensions", "OMNIRE_EXTENSIONS_DIR")
 
 
 def cpu_lacks(flags: Sequence[str]) -> list[str]:

@@ -55,6 +55,7 @@ from omnire.api import (
     frame_range,
     holdout_split,
     interpolate_track,
+    user_cache_dir,
 )
 from omnire_waymo import rangeimage
 from omnire_waymo.tfrecord import RecordSpan, TFRecordReader
@@ -175,11 +176,7 @@ def exposure_time(image, calib, u: float, v: float) -> Optional[float]:
 
 def default_image_dir() -> Path:
     """Where embedded JPEGs are extracted unless ``image_dir`` is given."""
-    root = os.environ.get("OMNIRE_WAYMO_IMAGE_DIR")
-    if root:
-        return Path(root)
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "omnire" / "waymo-images"
+    return user_cache_dir("waymo-images", "OMNIRE_WAYMO_IMAGE_DIR")
 
 
 def _write_if_changed(path: Path, data: bytes) -> None:

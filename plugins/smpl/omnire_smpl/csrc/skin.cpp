@@ -33,20 +33,6 @@ struct Blend {
   S T[12];  // row-major 3 x 4
 };
 
-// T = sum_k w_k A[base + j_k]; false when a joint index is out of range.
-template <typename S>
-inline bool blend(const S* A, int64_t body, int J, const int64_t* joints, const S* w, int K, Blend<S>& out) {
-  for (int e = 0; e < 12; ++e) out.T[e] = S(0);
-  for (int k = 0; k < K; ++k) {
-    const int64_t j = joints[k];
-    if (j < 0 || j >= J) return false;
-    const S* a = A + (body * J + j) * 12;
-    const S wk = w[k];
-    for (int e = 0; e < 12; ++e) out.T[e] += wk * a[e];
-  }
-  return true;
-}
-
 template <typename S>
 struct Quat {
   S feats[10];
@@ -124,38 +110,62 @@ Shapes check(const at::Tensor& A, const at::Tensor& slot, const at::Tensor& join
   return {A.size(0), A.size(1), M, joints.size(1)};
 }
 
+// The inputs' data (checked by ``check``) and the blend of one point.
+template <typename S>
+struct SkinInputs {
+  Shapes s;
+  const S *A, *w, *x, *q;
+  const int64_t *slot, *joints;
+  mutable std::atomic<bool> bad{false};  // an index out of range was met
+  SkinInputs(const at::Tensor& A_, const at::Tensor& slot_, const at::Tensor& joints_, const at::Tensor& weights,
+             const at::Tensor& means, const at::Tensor& quats)
+      : s(check(A_, slot_, joints_, weights, means, quats)), A(A_.data_ptr<S>()), w(weights.data_ptr<S>()),
+        x(means.data_ptr<S>()), q(quats.data_ptr<S>()), slot(slot_.data_ptr<int64_t>()),
+        joints(joints_.data_ptr<int64_t>()) {}
+  // T = sum_k w_ik A[slot_i, j_ik] and the point's body; false (and ``bad`` set) when an
+  // index is out of range.
+  bool blend(int64_t i, Blend<S>& out, int64_t& body) const {
+    body = slot[i];
+    if (body < 0 || body >= s.P) return fail();
+    for (int e = 0; e < 12; ++e) out.T[e] = S(0);
+    for (int64_t k = 0; k < s.K; ++k) {
+      const int64_t j = joints[i * s.K + k];
+      if (j < 0 || j >= s.J) return fail();
+      const S* a = A + (body * s.J + j) * 12;
+      const S wk = w[i * s.K + k];
+      for (int e = 0; e < 12; ++e) out.T[e] += wk * a[e];
+    }
+    return true;
+  }
+  bool fail() const {
+    bad.store(true, std::memory_order_relaxed);
+    return false;
+  }
+};
+
 template <typename S>
 std::vector<at::Tensor> forward_impl(const at::Tensor& A, const at::Tensor& slot, const at::Tensor& joints,
                                      const at::Tensor& weights, const at::Tensor& means, const at::Tensor& quats,
                                      double eps, int nt) {
-  const Shapes s = check(A, slot, joints, weights, means, quats);
+  const SkinInputs<S> in(A, slot, joints, weights, means, quats);
+  const Shapes& s = in.s;
   auto out_means = at::empty({s.M, 3}, means.options());
   auto out_quats = at::empty({s.M, 4}, quats.options());
-  const S* a = A.data_ptr<S>();
-  const int64_t* sl = slot.data_ptr<int64_t>();
-  const int64_t* jn = joints.data_ptr<int64_t>();
-  const S* w = weights.data_ptr<S>();
-  const S* x = means.data_ptr<S>();
-  const S* q = quats.data_ptr<S>();
   S* om = out_means.data_ptr<S>();
   S* oq = out_quats.data_ptr<S>();
-  std::atomic<bool> bad{false};
 #pragma omp parallel for schedule(static) num_threads(nt)
   for (int64_t i = 0; i < s.M; ++i) {
-    const int64_t body = sl[i];
     Blend<S> T;
-    if (body < 0 || body >= s.P || !blend(a, body, int(s.J), jn + i * s.K, w + i * s.K, int(s.K), T)) {
-      bad.store(true, std::memory_order_relaxed);
-      continue;
-    }
-    const S* xi = x + i * 3;
+    int64_t body;
+    if (!in.blend(i, T, body)) continue;
+    const S* xi = in.x + i * 3;
     for (int r = 0; r < 3; ++r)
       om[i * 3 + r] = T.T[r * 4] * xi[0] + T.T[r * 4 + 1] * xi[1] + T.T[r * 4 + 2] * xi[2] + T.T[r * 4 + 3];
     Quat<S> qr;
     rotmat_to_quat(T.T, S(eps), qr);
-    quat_mul(qr.q, q + i * 4, oq + i * 4);
+    quat_mul(qr.q, in.q + i * 4, oq + i * 4);
   }
-  TORCH_CHECK(!bad.load(), "skin: a body slot or joint index is out of range (P = ", s.P, ", J = ", s.J, ")");
+  TORCH_CHECK(!in.bad.load(), "skin: a body slot or joint index is out of range (P = ", s.P, ", J = ", s.J, ")");
   return {out_means, out_quats};
 }
 
@@ -163,7 +173,8 @@ template <typename S>
 std::vector<at::Tensor> backward_impl(const at::Tensor& A, const at::Tensor& slot, const at::Tensor& joints,
                                       const at::Tensor& weights, const at::Tensor& means, const at::Tensor& quats,
                                       const at::Tensor& g_means, const at::Tensor& g_quats, double eps, int nt) {
-  const Shapes s = check(A, slot, joints, weights, means, quats);
+  const SkinInputs<S> in(A, slot, joints, weights, means, quats);
+  const Shapes& s = in.s;
   TORCH_CHECK(g_means.sizes() == means.sizes() && g_quats.sizes() == quats.sizes() && g_means.is_contiguous() &&
                   g_quats.is_contiguous() && g_means.scalar_type() == A.scalar_type() &&
                   g_quats.scalar_type() == A.scalar_type(),
@@ -173,30 +184,20 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& A, const at::Tensor& slo
   const int64_t nA = s.P * s.J * 12;
   const int threads = int(std::max<int64_t>(1, std::min<int64_t>(nt, s.M)));
   std::vector<S> partial(size_t(threads) * nA, S(0));  // per-thread dL/dA
-  const S* a = A.data_ptr<S>();
-  const int64_t* sl = slot.data_ptr<int64_t>();
-  const int64_t* jn = joints.data_ptr<int64_t>();
-  const S* w = weights.data_ptr<S>();
-  const S* x = means.data_ptr<S>();
-  const S* q = quats.data_ptr<S>();
   const S* gm = g_means.data_ptr<S>();
   const S* gqo = g_quats.data_ptr<S>();
   S* gx = gx_t.data_ptr<S>();
   S* gq = gq_t.data_ptr<S>();
-  std::atomic<bool> bad{false};
 #pragma omp parallel num_threads(threads)
   {
     S* gA = partial.data() + size_t(omp_get_thread_num()) * nA;
 #pragma omp for schedule(static)
     for (int64_t i = 0; i < s.M; ++i) {
-      const int64_t body = sl[i];
       Blend<S> T;
-      if (body < 0 || body >= s.P || !blend(a, body, int(s.J), jn + i * s.K, w + i * s.K, int(s.K), T)) {
-        bad.store(true, std::memory_order_relaxed);
-        continue;
-      }
-      const S* xi = x + i * 3;
-      const S* qi = q + i * 4;
+      int64_t body;
+      if (!in.blend(i, T, body)) continue;
+      const S* xi = in.x + i * 3;
+      const S* qi = in.q + i * 4;
       const S* g = gm + i * 3;
       const S* go = gqo + i * 4;
       S gT[12];
@@ -243,15 +244,15 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& A, const at::Tensor& slo
       gT[4] += gf[6] + gf[7];   // m10
       gT[1] += -gf[6] + gf[7];  // m01
       // T = sum_k w_k A[body, j_k]
-      const int64_t* jk = jn + i * s.K;
-      const S* wk = w + i * s.K;
+      const int64_t* jk = in.joints + i * s.K;
+      const S* wk = in.w + i * s.K;
       for (int k = 0; k < s.K; ++k) {
         S* dst = gA + (body * s.J + jk[k]) * 12;
         for (int e = 0; e < 12; ++e) dst[e] += wk[k] * gT[e];
       }
     }
   }
-  TORCH_CHECK(!bad.load(), "skin_backward: a body slot or joint index is out of range (P = ", s.P, ", J = ", s.J, ")");
+  TORCH_CHECK(!in.bad.load(), "skin_backward: a body slot or joint index is out of range (P = ", s.P, ", J = ", s.J, ")");
   auto gA_t = at::zeros_like(A);
   S* out = gA_t.data_ptr<S>();
   for (int th = 0; th < threads; ++th) {
