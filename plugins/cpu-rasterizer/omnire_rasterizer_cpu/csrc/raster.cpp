@@ -239,30 +239,40 @@ void project_core(const D quat[4], const D scale[3], D iz, const Camera& cam, do
   p.conic[2] = p.cov[0] * idet;
 }
 
+// From p.t (camera-space mean) and iz = 1 / t_z: in_depth (near < z < far, z > 0, strictly
+// inside like the reference, and a finite 2D mean) and the 2D mean; ok false. False when
+// the row is not in depth.
+inline bool place_mean2d(Proj& p, double iz, const Camera& cam, double near, double far) {
+  const double z = p.t[2];
+  p.ok = false;
+  p.in_depth = (z > near && z < far && z > 0.0);
+  if (!p.in_depth) return false;
+  p.m2d[0] = cam.fx * p.t[0] * iz + cam.cx;
+  p.m2d[1] = cam.fy * p.t[1] * iz + cam.cy;
+  p.in_depth = std::isfinite(p.m2d[0]) && std::isfinite(p.m2d[1]);
+  return p.in_depth;
+}
+
+// The conic of a projection in depth is usable: positive, finite determinant and entries.
+inline bool conic_ok(const Proj& p) {
+  return p.det > 0.0 && std::isfinite(p.det) && std::isfinite(p.cov[0]) && std::isfinite(p.cov[2]) &&
+         std::isfinite(p.conic[0]) && std::isfinite(p.conic[1]) && std::isfinite(p.conic[2]);
+}
+
 template <typename S>
 void project_one(const S* mean, const S* quat, const S* scale, const Camera& cam, double near,
                  double far, double eps2d, Proj& p) {
   double m[3] = {double(mean[0]), double(mean[1]), double(mean[2])};
   for (int i = 0; i < 3; ++i)
     p.t[i] = cam.R[i * 3] * m[0] + cam.R[i * 3 + 1] * m[1] + cam.R[i * 3 + 2] * m[2] + cam.t[i];
-  const double z = p.t[2];
-  p.in_depth = (z > near && z < far && z > 0.0);  // strictly inside, like the reference
-  p.ok = false;
-  if (!p.in_depth) return;
   // one division per quantity divided by (z, |q|, det), multiplications after it: divisions
   // are the slowest arithmetic here and this runs for every row, forward and backward
-  const double iz = 1.0 / z;
-  p.m2d[0] = cam.fx * p.t[0] * iz + cam.cx;
-  p.m2d[1] = cam.fy * p.t[1] * iz + cam.cy;
-  if (!std::isfinite(p.m2d[0]) || !std::isfinite(p.m2d[1])) {
-    p.in_depth = false;
-    return;
-  }
+  const double iz = 1.0 / p.t[2];
+  if (!place_mean2d(p, iz, cam, near, far)) return;
   const double q[4] = {double(quat[0]), double(quat[1]), double(quat[2]), double(quat[3])};
   const double sc[3] = {double(scale[0]), double(scale[1]), double(scale[2])};
   project_core(q, sc, iz, cam, eps2d, p);
-  p.ok = p.det > 0.0 && std::isfinite(p.det) && std::isfinite(p.cov[0]) && std::isfinite(p.cov[2]) &&
-         std::isfinite(p.conic[0]) && std::isfinite(p.conic[1]) && std::isfinite(p.conic[2]);
+  p.ok = conic_ok(p);
 }
 
 // project_one of n <= 4 rows at once on the lanes of D4 (spare lanes repeat the first row):
@@ -287,23 +297,13 @@ void project_four(const S* const mean[4], const S* const quat[4], const S scale[
   for (int l = 0; l < n; ++l) {
     Proj& o = out[l];
     for (int i = 0; i < 3; ++i) o.t[i] = p.t[i][l];
-    const double z = o.t[2];
-    o.in_depth = (z > near && z < far && z > 0.0);
-    o.ok = false;
-    if (!o.in_depth) continue;
-    o.m2d[0] = cam.fx * o.t[0] * iz[l] + cam.cx;
-    o.m2d[1] = cam.fy * o.t[1] * iz[l] + cam.cy;
-    if (!std::isfinite(o.m2d[0]) || !std::isfinite(o.m2d[1])) {
-      o.in_depth = false;
-      continue;
-    }
+    if (!place_mean2d(o, iz[l], cam, near, far)) continue;
     for (int i = 0; i < 3; ++i) {
       o.cov[i] = p.cov[i][l];
       o.conic[i] = p.conic[i][l];
     }
     o.det = p.det[l];
-    o.ok = o.det > 0.0 && std::isfinite(o.det) && std::isfinite(o.cov[0]) && std::isfinite(o.cov[2]) &&
-           std::isfinite(o.conic[0]) && std::isfinite(o.conic[1]) && std::isfinite(o.conic[2]);
+    o.ok = conic_ok(o);
   }
 }
 
