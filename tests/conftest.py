@@ -10,15 +10,18 @@ def tiny_scene(tmp_path):
 
 
 def pytest_terminal_summary(terminalreporter):
-    """The hostile-input suite's count (tests/test_hostile_inputs.py)."""
+    """The hostile-input suites' count (tests/hostile.py), per surface."""
     import sys
 
-    module = sys.modules.get("test_hostile_inputs") or next(
-        (m for name, m in sys.modules.items() if name.endswith("test_hostile_inputs")), None)
+    module = sys.modules.get("hostile")
     results = getattr(module, "RESULTS", None)
     if not results:
         return
     bad = {k: sum(1 for r in results if r[k]) for k in ("traceback", "wrong", "changed")}
+    surfaces: dict[str, int] = {}
+    for r in results:
+        surfaces[r["surface"]] = surfaces.get(r["surface"], 0) + 1
+    per = ", ".join(f"{s} {n}" for s, n in sorted(surfaces.items()))
     terminalreporter.write_line(
-        f"hostile inputs: {len(results)} cases tried; {bad['traceback']} produced a traceback, "
+        f"hostile inputs: {len(results)} cases tried ({per}); {bad['traceback']} produced a traceback, "
         f"{bad['wrong']} a wrong result or exit code, {bad['changed']} changed an input file")

@@ -6,7 +6,6 @@ its input files unchanged. The count is printed at the end of the test session."
 from __future__ import annotations
 
 import gzip
-import hashlib
 import json
 import os
 import pickle
@@ -17,55 +16,16 @@ import pytest
 
 from omnire.cli import main
 
+from hostile import record, run_case
 from scene_helpers import DEMO_SCENE
 
 pytestmark = pytest.mark.skipif(not DEMO_SCENE.is_dir(), reason="demo scene not in this checkout")
 SMALL = ["--end-frame", "4", "--holdout-every", "2", "--scale", "0.25", "--method.rasterizer", "torch",
          "--method.nodes.background.max-lidar-points", "2000", "--method.nodes.background.num-far-points", "200",
          "--trainer.no-progress", "--trainer.eval-train-views", "2"]
-RESULTS: list[dict] = []
-"""One entry per case: name, exit code, traceback?, wrong result?, changed input? (read by conftest)."""
-
-
 class _Evil:
     def __reduce__(self):
         return (os.system, ("touch /tmp/omnire-pwned",))
-
-
-def _digest(root: Path) -> dict[str, str]:
-    if root.is_file():
-        return {root.name: hashlib.sha256(root.read_bytes()).hexdigest()}
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
-
-
-def run_case(name: str, argv: list[str], capsys, inputs: list[Path], expect_exit: int = 2,
-             needles: tuple[str, ...] = (), check=None) -> tuple[int, str]:
-    """Run ``omnire <argv>``; record whether it raised (a traceback), exited as expected with
-    a message containing ``needles``, and left ``inputs`` unchanged."""
-    before = {str(p): _digest(p) for p in inputs}
-    traceback = None
-    try:
-        code = main(argv)
-    except SystemExit as exc:  # tyro's own argument errors
-        code = exc.code if isinstance(exc.code, int) else 2
-    except Exception as exc:  # noqa: BLE001 - exactly what the suite looks for
-        traceback, code = repr(exc), -1
-    out = capsys.readouterr()
-    text = out.out + out.err
-    wrong = code != expect_exit or any(n not in text for n in needles) or (check is not None and not check())
-    changed = any(_digest(Path(p)) != d for p, d in before.items())
-    RESULTS.append({"case": name, "exit": code, "traceback": traceback, "wrong": wrong, "changed": changed})
-    assert traceback is None, f"{name}: traceback {traceback}"
-    assert not changed, f"{name}: an input file changed"
-    assert code == expect_exit, f"{name}: exit {code}, expected {expect_exit}; output:\n{text[-2000:]}"
-    for n in needles:
-        assert n in text, f"{name}: {n!r} not in the output:\n{text[-2000:]}"
-    assert "Traceback" not in text, f"{name}: a traceback was printed"
-    assert "weights_only=False" not in text
-    if check is not None:
-        assert check(), f"{name}: wrong result"
-    return code, text
 
 
 @pytest.fixture(scope="module")
@@ -311,7 +271,7 @@ def omnire_register_rasterizers(registry):
 
 
 def _record(case: str, ok: bool, detail: str = "") -> None:
-    RESULTS.append({"case": case, "exit": 0 if ok else 1, "traceback": None, "wrong": not ok, "changed": False})
+    record("plugins", case, exit=0 if ok else 1, wrong=not ok)
     assert ok, f"{case}: {detail}"
 
 
