@@ -2,7 +2,7 @@
 contract, the sky's environment lookup and render-time camera edits all take a
 :class:`Camera`.
 
-Conventions (DESIGN.md section 3): OpenCV axes (x right, y down, z forward), camera-to-world
+Conventions (docs/conventions.md, "Cameras"): OpenCV axes (x right, y down, z forward), camera-to-world
 4x4, pinhole K in pixels at the image size, pixel centres at +0.5.
 """
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Evaluation protocol: reconstruction (training frames) and novel view synthesis
 (held-out frames), PSNR / SSIM on full images, LiDAR depth RMSE, and the trivial baseline
 "copy the nearest training frame of the same camera" next to every NVS number (a method
-that does not beat it has not synthesised a view; DESIGN.md section 6)."""
+that does not beat it has not synthesised a view; docs/conventions.md, "The demo log")."""
 from __future__ import annotations
 
 import math

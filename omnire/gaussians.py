@@ -1,6 +1,6 @@
 """Gaussian sets: raw parameters, activation, SE(3) transforms, concatenation, SH colour.
 
-Raw storage (DESIGN.md section 3): means (N,3), quats (N,4) wxyz un-normalised, log-scales
+Raw storage (docs/conventions.md, "Gaussians"): means (N,3), quats (N,4) wxyz un-normalised, log-scales
 (N,3), opacity logits (N,), SH coefficients sh0 (N,1,3) and shN (N,K-1,3) with
 K = (degree+1)^2, degree <= 3.
 """

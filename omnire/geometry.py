@@ -1,6 +1,6 @@
 """Rotations and rigid transforms: the one implementation of each conversion in the tree.
 
-Quaternions are wxyz (DESIGN.md section 3). Every function takes torch tensors and is
+Quaternions are wxyz (docs/conventions.md, "Rotations"). Every function takes torch tensors and is
 differentiable; each also accepts numpy arrays (computed in float64, returned as numpy), so
 readers and the body pipeline use the same code as the nodes.
 """

@@ -36,7 +36,7 @@ from omnire.optim import Optimizers
 
 @dataclasses.dataclass
 class DensifyConfig:
-    """AbsGrad densification settings (defaults: DESIGN.md section 4)."""
+    """AbsGrad densification settings (defaults: docs/paper.md "Optimisation")."""
 
     grad_threshold: float = 3e-4
     """Mean normalised absolute 2D gradient above which a Gaussian grows."""

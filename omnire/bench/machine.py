@@ -2,8 +2,8 @@
 they came from one: the CPU's model and vector extensions, and two short probes on the
 benchmark's threads. Machines of one kind differ: this project's sessions measured one
 code's training step (~350k Gaussians) at about 150 ms on one and about 180 ms on another,
-whose fp32 matrix products ran 2.4x faster (DESIGN.md's 130-140 GFLOP/s against 323 on 2
-threads).
+whose fp32 matrix products ran 2.4x faster (130-140 GFLOP/s against 323 on 2 threads;
+CHANGELOG.md, "Machines").
 """
 from __future__ import annotations
 

@@ -81,7 +81,7 @@ def frame_range(start: int, end: int, total: int, source: str) -> range:
 def first_pose_world(ego_to_source: np.ndarray) -> np.ndarray:
     """(4, 4) transform from a dataset's world frame to the omnire world: origin at the ego
     pose ``ego_to_source`` (4, 4) (the first loaded one), x along its heading projected on
-    the ground, z kept up (the ego's roll and pitch are not undone, DESIGN.md section 3)."""
+    the ground, z kept up (the ego's roll and pitch are not undone, docs/conventions.md "World frame")."""
     from omnire.geometry import rot_z
 
     forward = ego_to_source[:3, 0]

@@ -1,6 +1,6 @@
 """What a dataparser returns: :class:`SceneData`.
 
-Conventions (DESIGN.md section 3): world frame right-handed, z up, metres; cameras in
+Conventions (docs/conventions.md): world frame right-handed, z up, metres; cameras in
 OpenCV axes (x right, y down, z forward) stored as camera-to-world 4x4; intrinsics K in
 pixels at the *loaded* resolution, pixel centres at +0.5; quaternions wxyz; box pose =
 box-to-world SE(3) with origin at the box centre and x along the heading, size =

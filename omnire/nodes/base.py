@@ -113,7 +113,7 @@ class NodeConfig(InstantiateConfig):
 @dataclasses.dataclass
 class GaussianNodeConfig(NodeConfig):
     """Fields every Gaussian-holding node shares: SH degree, initial opacity and the
-    per-Gaussian learning rates (reference values, DESIGN.md section 4)."""
+    per-Gaussian learning rates (reference values, docs/paper.md "Optimisation")."""
 
     sh_degree: int = 3
     """Highest SH degree (bands are switched on progressively by the trainer)."""

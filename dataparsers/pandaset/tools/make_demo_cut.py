@@ -3,7 +3,7 @@
 Writes ``data/demo/pandaset_002/`` (repo top) in PandaSet's own layout, so the same
 ``pandaset`` dataparser reads it:
 
-- frames 40..79 (the part where the ego moves, DESIGN.md section 6), renumbered 00..39 so
+- frames 40..79 (the part where the ego moves, docs/conventions.md "The demo log"), renumbered 00..39 so
   the cut is a regular PandaSet sequence (files start at 00, per-frame json lists start at
   the first file); the original numbers go to ``meta/source_frames.json``, which the parser
   reports as ``SceneData.source_frames``;

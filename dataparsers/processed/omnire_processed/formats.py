@@ -1,4 +1,4 @@
-"""Facts about the reference implementation's processed-scene format (DESIGN.md section 5):
+"""Facts about the reference implementation's processed-scene format (docs/conventions.md):
 per-dataset camera ids, LiDAR column layouts, camera-axis, pixel-centre and box-axis
 conventions, and class names.
 """

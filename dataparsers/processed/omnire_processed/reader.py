@@ -1,6 +1,6 @@
-"""Dataparser for the reference implementation's processed-scene format (DESIGN.md section 5).
+"""Dataparser for the reference implementation's processed-scene format (docs/conventions.md).
 
-Conversions to omnire's conventions (DESIGN.md section 3):
+Conversions to omnire's conventions (docs/conventions.md):
 
 - World: every world-frame quantity is re-expressed relative to the ego pose (``ego_pose/``,
   or ``lidar_pose/`` for nuScenes-style scenes) of the first loaded frame, so the file's

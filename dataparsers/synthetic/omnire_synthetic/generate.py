@@ -1,6 +1,6 @@
 """Generate a synthetic driving scene in the processed-scene format, with ground truth.
 
-Output (DESIGN.md section 5 layout, ``style`` chooses the dataset conventions):
+Output (docs/conventions.md, "The processed scene format"; ``style`` picks the dataset conventions):
 
 - ``images/{t:03d}_{cam}.jpg``, ``sky_masks/``, ``dynamic_masks/{all,human,vehicle}/`` (coarse:
   projected 3D boxes), ``fine_dynamic_masks/...`` (exact visible actor pixels),

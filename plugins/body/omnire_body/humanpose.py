@@ -27,7 +27,7 @@ but a matched tracklet use (b)-(c) above; otherwise (``fallback="neutral"``) a p
 starts from a neutral standing pose facing its track heading and relies on pose
 refinement. Each sequence's ``source`` says which path it took.
 
-Rotations are SMPL conventions (DESIGN.md section 3): canonical body frame x = body's left,
+Rotations are SMPL conventions (docs/conventions.md, "SMPL bodies"): canonical body frame x = body's left,
 y up, z forward; ``body_pose`` relative to the parent joint and to the template's rest pose.
 """
 from __future__ import annotations

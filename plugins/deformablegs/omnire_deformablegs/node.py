@@ -10,7 +10,7 @@ No boxes, no actor nodes: moving actors must be explained by the field.
 
 Following the paper: 8 ReLU layers of 256 with the input concatenated again after layer 4,
 positional encodings gamma(p) = (sin(2^k pi p), cos(2^k pi p))_{k<L} with L = 10 for
-position and time (real-scene setting; DESIGN.md section 4), stop-gradient on the position
+position and time (real-scene setting; docs/paper.md "Nodes"), stop-gradient on the position
 input, deformation off during a warm-up (canonical 3DGS only), and annealed smooth
 training (AST): Gaussian noise N(0,1) * beta * dt * (1 - step / ast_steps) added to the
 time input during training (beta = 0.1, dt = mean normalised frame interval).
@@ -27,7 +27,7 @@ Deviations (documented, all a flag away except the first two):
   (about 3-4x slower per step on CPU; see the plugin report for measured it/s).
 - Warm-up 500 steps by default (the paper uses 3000 of 40k steps; omnire's default
   training is 3000 steps).
-- Learning rate of the MLP 8e-3 -> 8e-4 (the OmniRe reference value, DESIGN.md section 4).
+- Learning rate of the MLP 8e-3 -> 8e-4 (the OmniRe reference value, docs/paper.md "Optimisation").
 - Frustum culling before the MLP (CPU speed): only canonical Gaussians within
   ``cull_margin`` metres (plus three times their largest scale) of the rendered camera's
   frustum are deformed and rendered. A Gaussian whose deformation carries it further than

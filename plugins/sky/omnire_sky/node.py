@@ -1,7 +1,7 @@
 """Sky node: a learnable environment map queried by the world view direction of each pixel,
 composited under the Gaussians as C = C_gs + (1 - O_gs) C_sky.
 
-The map is equirectangular (azimuth x elevation, bilinear via grid_sample; DESIGN.md allows
+The map is equirectangular (azimuth x elevation, bilinear via grid_sample; docs/paper.md "Nodes" allows
 any differentiable environment map in place of the reference's cube map). It holds no
 Gaussians, so it is never densified.
 """

@@ -24,7 +24,7 @@ World Gaussians of person i at frame t (OmniRe: world = T_h(t) (x) LBS(theta(t),
 - Pose blend shapes (``posedirs`` of SMPL files) are not applied: Gaussians, not vertices,
   are skinned, and densified Gaussians have no vertex of their own.
 
-Regulariser ``pose_smoothness`` (DESIGN.md section 4): for the people present at t and a
+Regulariser ``pose_smoothness`` (docs/paper.md "Losses"): for the people present at t and a
 random d in {1..max_offset}, 0.5 * mean |r(t-d) + r(t+d) - 2 r(t)| over the 6D rotation
 features (first two matrix columns) of the 24 rotations.
 
