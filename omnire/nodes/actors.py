@@ -339,7 +339,7 @@ class ActorNode(GaussianNode):
             # Present but out of view: no transform, no rasterizer rows (renders only). A
             # training step places every present actor, so its Gaussians get their Adam step
             # on a zero gradient (momentum) as with dense Adam; skipping them changed training
-            # (docs/benchmarks.md, ninth and tenth sessions).
+            # (CHANGELOG.md, 2026-11-26).
             state = self.in_view(state, camera)
             if len(state.ids) == 0:
                 g, rows = self.present_gaussians(state.ids)  # no rows; the regularisers still run
