@@ -68,6 +68,7 @@ class ListUnpickler(pickle.Unpickler):
                                                for name in ("Translation", "Rotation", "CameraIntrinsic")})
 
     def find_class(self, module: str, name: str) -> Any:
+        module = {"copy_reg": "copyreg", "__builtin__": "builtins"}.get(module, module)  # protocol 0/1 names
         if (module, name) in self.LISTS:
             return list
         if (module, name) == ("copyreg", "_reconstructor"):  # protocol 0/1 pickles of list subclasses
