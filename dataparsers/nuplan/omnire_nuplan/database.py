@@ -77,7 +77,8 @@ class ListUnpickler(pickle.Unpickler):
 
 
 def _short(value: Any) -> str:
-    text = repr(value)
+    """A cell for a message: at most 80 characters (a cell can be a large BLOB)."""
+    text = repr(value[:81] if isinstance(value, (str, bytes)) else value)
     return text if len(text) <= 80 else text[:77] + "..."
 
 
@@ -135,15 +136,29 @@ class Row:
             raise self.error(column, want)
         try:
             obj = ListUnpickler(io.BytesIO(v)).load()
-            a = np.asarray(obj, dtype=np.float64)
         except (pickle.UnpicklingError, EOFError, TypeError, ValueError, AttributeError, IndexError,
-                KeyError, OverflowError, MemoryError, ImportError) as exc:
+                KeyError, OverflowError, MemoryError, ImportError, RecursionError) as exc:
             raise NuPlanDataError(f"{self.db.path}: table {self.table} row {token_hex(self.values['token'])}: "
                                   f"column {column} is not {want} ({exc})") from None
-        if a.shape != shape or not np.isfinite(a).all():
+        # The nesting is checked before numpy sees it: shared references could make a small
+        # pickle a huge nested list.
+        if not _nested_numbers(obj, shape):
+            got = f"a {type(obj).__name__}" + (f" of {len(obj)} items" if isinstance(obj, (list, tuple)) else "")
             raise NuPlanDataError(f"{self.db.path}: table {self.table} row {token_hex(self.values['token'])}: "
-                                  f"column {column} unpickles to {_short(a.tolist())}; expected {want}")
+                                  f"column {column} unpickles to {got}; expected {want}")
+        a = np.asarray(obj, dtype=np.float64)
+        if not np.isfinite(a).all():
+            raise NuPlanDataError(f"{self.db.path}: table {self.table} row {token_hex(self.values['token'])}: "
+                                  f"column {column} unpickles to {a.tolist()}; expected {want}")
         return a
+
+
+def _nested_numbers(obj: Any, shape: tuple[int, ...]) -> bool:
+    """Whether ``obj`` is nested lists of exactly ``shape`` holding int/float numbers."""
+    if not shape:
+        return isinstance(obj, (int, float)) and not isinstance(obj, bool)
+    return (isinstance(obj, (list, tuple)) and len(obj) == shape[0]
+            and all(_nested_numbers(o, shape[1:]) for o in obj))
 
 
 class LogDatabase:

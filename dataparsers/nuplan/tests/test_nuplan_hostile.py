@@ -101,7 +101,15 @@ def _evil_pickle(root):
 
 def _short_translation(root):
     sql(database_path(root), "UPDATE camera SET translation = ?", args=(pickle.dumps([1.0, 2.0]),))
-    return "column translation unpickles to [1.0, 2.0]; expected a pickled list of 3 finite numbers"
+    return "column translation unpickles to a list of 2 items; expected a pickled list of 3 finite numbers"
+
+
+def _pickle_bomb(root):
+    level = [1.0]
+    for _ in range(12):  # 100**12 numbers if expanded; a few kB pickled (shared references)
+        level = [level] * 100
+    sql(database_path(root), "UPDATE camera SET intrinsic = ?", args=(pickle.dumps(level),))
+    return "column intrinsic unpickles to a list of 100 items; expected a pickled list of 3x3"
 
 
 def _float_in_pickle_cell(root):
@@ -177,7 +185,8 @@ CORRUPT = {
     "missing table": _missing_table, "missing column": _missing_column, "text timestamp": _text_timestamp,
     "text coordinate": _text_coordinate, "number as foreign key": _number_foreign_key, "dangling track": _dangling_track,
     "malicious pickle": _evil_pickle, "short translation": _short_translation,
-    "float in a pickle cell": _float_in_pickle_cell, "not a unit quaternion": _not_unit_quaternion,
+    "float in a pickle cell": _float_in_pickle_cell,
+    "pickle bomb": _pickle_bomb, "not a unit quaternion": _not_unit_quaternion,
     "negative box size": _negative_box, "missing image blob": _missing_image, "wrong image size": _wrong_image_size,
     "no lidar blobs": _no_lidar_blobs, "truncated pcd": _truncated_pcd, "not a pcd": _not_a_pcd,
     "no camera": _no_camera, "no images": _no_images, "no lidar": _no_lidar, "no sensor blobs": _no_sensor_blobs,
