@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from omnire_nuplan import NuPlanConfig, NuPlanDataError, parse_pcd
+from omnire_nuplan import NuPlanConfig, NuPlanDataError, parse_pcd, read_points
 
 R2 = math.sqrt(0.5)
 T0 = 1_620_000_000_000_000  # microseconds
@@ -178,6 +178,9 @@ def test_pcd_records_and_trailing_bytes(tmp_path, devkit_types):
                                                               ("t", "<u8")]).tobytes())
     rec = parse_pcd(mixed, Path("mixed.pcd"))
     assert rec["z"].tolist() == [3.0, 6.0] and rec["t"].tolist() == [9, 10]
+    bin2 = tmp_path / "c.bin2"  # the devkit's other merged-cloud blob: 6 float32 columns
+    bin2.write_bytes(np.arange(12, dtype="<f4").tobytes())
+    assert read_points(bin2)["lidar_info"].tolist() == [5.0, 11.0]
     with pytest.raises(NuPlanDataError, match=r"mixed.pcd: .pcd POINTS 3 needs 60 bytes"):
         parse_pcd(mixed.replace(b"POINTS 2", b"POINTS 3"), Path("mixed.pcd"))
     with pytest.raises(NuPlanDataError, match="DATA ascii; nuPlan blobs are DATA binary"):

@@ -16,6 +16,7 @@ import pytest
 
 from omnire.api import first_pose_world
 from omnire_nuplan import CAMERAS, NuPlanConfig, category_of, parse_pcd
+from omnire_nuplan.dataparser import nearest_index
 from omnire_nuplan.writer import FIRST_US, LOG, blobs_path, database_path, load_source, write_nuplan
 
 FRAMES = 6
@@ -134,15 +135,30 @@ def test_category_mapping():
                                      "generic_object")] == ["vehicle", "human", "cyclist"] + ["other"] * 4
 
 
-def test_plugin_registered():
-    from omnire.plugins import load_plugins
+def test_nearest_index_matches_brute_force():
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 7, 50):
+        times = np.sort(rng.choice(10_000, n, replace=False)).astype(np.int64)
+        query = rng.integers(-500, 10_500, 200)
+        query[:n] = times  # exact hits
+        query[n:2 * n - 1] = (times[:-1] + times[1:]) // 2 if n > 1 else query[n:2 * n - 1]  # (near-)ties
+        brute = np.array([int(np.argmin(np.abs(times - q))) for q in query])  # argmin: the earlier on ties
+        assert np.array_equal(nearest_index(times, query), brute)
 
-    plugins = load_plugins()
-    assert "nuplan" in plugins.dataparsers.names() and "nuplan" in plugins.scene_writers.names()
-    assert plugins.dataparsers.provenance("nuplan").distribution == "omnire-dataparser-nuplan"
+
+def test_explicit_sensor_blobs(synth):
+    s = NuPlanConfig(data=database_path(synth.out), sensor_blobs=blobs_path(synth.out), scale=1.0,
+                     load_lidar=False).setup().parse()
+    assert np.array_equal(s.cameras[0].cam_to_world, synth.scene.cameras[0].cam_to_world)
+
+
+def test_plugin_listed():
+    """``omnire plugins`` (the real CLI) lists the dataparser and the scene writer with their distribution."""
     out = subprocess.run([sys.executable, "-m", "omnire.cli", "plugins"], capture_output=True, text=True,
-                         env=dict(os.environ, COLUMNS="200"), timeout=300)
-    assert out.returncode == 0 and "nuplan" in out.stdout
+                         env=dict(os.environ, COLUMNS="250"), timeout=300)
+    assert out.returncode == 0, out.stderr
+    rows = [line for line in out.stdout.splitlines() if " nuplan " in line]
+    assert len(rows) == 2 and all("omnire-dataparser-nuplan" in r for r in rows), out.stdout
 
 
 def test_synth_format_and_train_omnire(tmp_path):
