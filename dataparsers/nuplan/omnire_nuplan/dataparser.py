@@ -15,13 +15,16 @@ Conventions, each from nuplan-devkit (paths under ``nuplan/database/``; schema i
 - Quaternions are w, x, y, z: ``ego_pose.qw qx qy qz`` (``nuplan_db_orm/ego_pose.py``
   ``Quaternion(self.qw, self.qx, self.qy, self.qz)``); camera and lidar ``rotation`` is
   ``Quaternion(self.rotation)`` of a [w, x, y, z] list (schema: "quaternion: w, x, y, z").
-- ``ego_pose`` is ego-to-global; ``camera`` / ``lidar`` rows are sensor-to-ego: the devkit
-  takes boxes global -> sensor with ``ego_pose.trans_matrix_inv`` then
-  ``camera.trans_matrix_inv`` (``nuplan_db_orm/image.py`` ``Image.boxes``, ``utils.py``
-  ``get_boxes``). Each image and each lidar_pc has its own ego_pose row.
+- ``ego_pose`` is ego-to-global; ``camera`` / ``lidar`` rows are sensor-to-ego; merged point
+  clouds are in their ``lidar`` row's frame. The devkit maps LiDAR points into an image with
+  ``camera.trans_matrix_inv @ ego_pose(image).trans_matrix_inv @ ego_pose(lidar_pc).trans_matrix
+  @ lidar.trans_matrix`` (``nuplan_db_orm/rendering_utils.py`` ``map_pointcloud_to_image``),
+  and takes boxes global -> camera the same way (``nuplan_db_orm/image.py`` ``Image.boxes``,
+  ``utils.py`` ``get_boxes``). Each image and each lidar_pc has its own ego_pose row.
 - The camera frame is OpenCV's (x right, y down, z forward): the devkit projects
   camera-frame points with ``view_points(points, camera.intrinsic, normalize=True)``
-  (``utils/geometry.py``), dividing by z. ``camera.intrinsic`` is a 3x3 K of the distorted
+  (``utils/geometry.py``), dividing by z, and keeps those with depth > 0
+  (``map_pointcloud_to_image``). ``camera.intrinsic`` is a 3x3 K of the distorted
   image; ``camera.distortion`` is (k1, k2, p1, p2, k3) "according to the Caltech model"
   (schema), the OpenCV / Bouguet model: images are undistorted at load to K.
 - Pixel centres: the devkit draws projected points over ``ax.imshow(image)``
@@ -34,8 +37,6 @@ Conventions, each from nuplan-devkit (paths under ``nuplan/database/``; schema i
   pitch 0). Size is (width, length, height) (``LidarBox.size``) and the box's x axis runs
   along the length (``utils/boxes/box3d.py`` ``Box3D._calc_corners``: x * length / 2,
   y * width / 2). omnire boxes keep that rotation with size = (length, width, height).
-- Merged point clouds are in their ``lidar`` row's frame (``LidarPc.boxes(Frame.SENSOR)``
-  meets the points there in ``LidarPc.render``).
 
 Frames: every ``--frame-step``-th lidar_pc of the log (default 2: the paper's code takes
 every second lidar_pc, 10 Hz, ziyc/drivestudio ``datasets/nuplan/nuplan_preprocess.py``,

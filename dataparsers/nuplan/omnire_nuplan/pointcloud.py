@@ -10,8 +10,9 @@ Format (nuplan-devkit ``nuplan/database/utils/pointclouds/pointcloud.py``, ``Poi
   last point. Merged clouds carry ``x y z intensity ring lidar_info`` (``to_pcd_bin2``).
 - ``.bin2``: float32 rows of x, y, z, intensity, ring, lidar id (``load_pcd_bin`` version 2).
 
-Points are in the frame of the ``lidar`` row of their ``lidar_pc`` (the devkit renders them
-with the boxes moved into that frame: ``LidarPc.boxes(Frame.SENSOR)``).
+Points are in the frame of the ``lidar`` row of their ``lidar_pc`` (the devkit moves them to
+the ego with ``lidar.trans_matrix``: ``nuplan_db_orm/rendering_utils.py``
+``map_pointcloud_to_image``).
 """
 from __future__ import annotations
 

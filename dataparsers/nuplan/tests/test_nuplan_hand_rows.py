@@ -9,9 +9,12 @@ Conventions used for the expected values, and where nuplan-devkit documents each
   statements of ``nuplan/database/nuplan_db/test/minimal_db_test_utils.py``;
 - quaternions are (w, x, y, z): ``docs/nuplan_schema.md`` (camera / lidar ``rotation``),
   ``nuplan/database/nuplan_db_orm/ego_pose.py`` (``Quaternion(qw, qx, qy, qz)``);
-- ego_pose is ego -> global and camera / lidar rows are sensor -> ego:
-  ``nuplan_db_orm/image.py`` ``Image.boxes`` -> ``utils.py`` ``get_boxes`` (global boxes moved
-  by ``ego_pose.trans_matrix_inv`` then ``camera.trans_matrix_inv``);
+- ego_pose is ego -> global, camera / lidar rows are sensor -> ego, merged clouds are in the
+  lidar row's frame: ``nuplan_db_orm/rendering_utils.py`` ``map_pointcloud_to_image``
+  (points -> image by ``camera.trans_matrix_inv @ ego_pose(image).trans_matrix_inv @
+  ego_pose(lidar_pc).trans_matrix @ lidar.trans_matrix``), and ``nuplan_db_orm/image.py``
+  ``Image.boxes`` -> ``utils.py`` ``get_boxes`` (global boxes moved by
+  ``ego_pose.trans_matrix_inv`` then ``camera.trans_matrix_inv``);
 - the camera frame is OpenCV's (z forward, divided by in ``utils/geometry.py`` ``view_points``);
   K's pixel centres are at integers (``rendering_utils.py`` ``render_pointcloud_in_image``
   scatters K-projected points over ``imshow``), so omnire's cx, cy are K's + 0.5;
@@ -23,7 +26,7 @@ Conventions used for the expected values, and where nuplan-devkit documents each
 - timestamps are microseconds (``nuplan_db/nuplan_scenario_queries.py``
   ``get_images_from_lidar_tokens``: 50000 us = 0.05 s), lidar_pc at 20 Hz;
 - merged point clouds are binary ``.pcd`` (``utils/pointclouds/pointcloud.py``
-  ``PointCloud.parse``) in the frame of their ``lidar`` row (``LidarPc.boxes(Frame.SENSOR)``).
+  ``PointCloud.parse``).
 """
 from __future__ import annotations
 
