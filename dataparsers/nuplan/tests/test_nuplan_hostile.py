@@ -64,78 +64,52 @@ def _truncated_db(root):
     return str(db)
 
 
-def _missing_table(root):
-    sql(database_path(root), "DROP TABLE lidar_box")
-    return "no table lidar_box"
-
-
-def _missing_column(root):
-    sql(database_path(root), "ALTER TABLE camera RENAME COLUMN intrinsic TO k")
-    return "table camera lacks column(s) intrinsic"
-
-
-def _text_timestamp(root):
-    sql(database_path(root), "UPDATE lidar_pc SET timestamp = 'soon' WHERE rowid = 2")
-    return "column timestamp = 'soon'; expected an INTEGER"
-
-
-def _text_coordinate(root):
-    sql(database_path(root), "UPDATE ego_pose SET x = 'east'")
-    return "table ego_pose row"
-
-
-def _number_foreign_key(root):
-    sql(database_path(root), "UPDATE image SET ego_pose_token = 5")
-    return "column ego_pose_token = 5; expected a token"
-
-
-def _dangling_track(root):
-    sql(database_path(root), "UPDATE lidar_box SET track_token = x'0000000000000000' WHERE rowid = 1")
-    return "column track_token = 0000000000000000 names no row of table track"
-
-
-def _evil_pickle(root):
-    sql(database_path(root), "UPDATE camera SET translation = ?", args=(pickle.dumps(_Evil()),))
-    return "refers to posix.system"
-
-
-def _short_translation(root):
-    sql(database_path(root), "UPDATE camera SET translation = ?", args=(pickle.dumps([1.0, 2.0]),))
-    return "column translation unpickles to a list of 2 items; expected a pickled list of 3 finite numbers"
-
-
-def _pickle_bomb(root):
+def _pickle_bomb() -> bytes:
     level = [1.0]
     for _ in range(12):  # 100**12 numbers if expanded; a few kB pickled (shared references)
         level = [level] * 100
-    sql(database_path(root), "UPDATE camera SET intrinsic = ?", args=(pickle.dumps(level),))
-    return "column intrinsic unpickles to a list of 100 items; expected a pickled list of 3x3"
+    return pickle.dumps(level)
 
 
-def _float_in_pickle_cell(root):
-    sql(database_path(root), "UPDATE lidar SET rotation = 1.5")
-    return "table lidar row"
+SQL_CASES = {  # case: (statement on the database, its argument or None, the text the error must contain)
+    "missing table": ("DROP TABLE lidar_box", None, "no table lidar_box"),
+    "missing column": ("ALTER TABLE camera RENAME COLUMN intrinsic TO k", None,
+                       "table camera lacks column(s) intrinsic"),
+    "text timestamp": ("UPDATE lidar_pc SET timestamp = 'soon' WHERE rowid = 2", None,
+                       "column timestamp = 'soon'; expected an INTEGER"),
+    "text coordinate": ("UPDATE ego_pose SET x = 'east'", None, "column x = 'east'; expected a finite number"),
+    "number as foreign key": ("UPDATE image SET ego_pose_token = 5", None,
+                              "column ego_pose_token = 5; expected a token"),
+    "dangling track": ("UPDATE lidar_box SET track_token = x'0000000000000000' WHERE rowid = 1", None,
+                       "column track_token = 0000000000000000 names no row of table track"),
+    "malicious pickle": ("UPDATE camera SET translation = ?", pickle.dumps(_Evil()), "refers to posix.system"),
+    "short translation": ("UPDATE camera SET translation = ?", pickle.dumps([1.0, 2.0]),
+                          "column translation unpickles to a list of 2 items; expected a pickled list of 3 finite"),
+    "pickle bomb": ("UPDATE camera SET intrinsic = ?", _pickle_bomb(),
+                    "column intrinsic unpickles to a list of 100 items; expected a pickled list of 3x3"),
+    "float in a pickle cell": ("UPDATE lidar SET rotation = 1.5", None,
+                               "column rotation = 1.5; expected a pickled list of 4"),
+    "not a unit quaternion": ("UPDATE ego_pose SET qw = 2.0", None, "is not a unit quaternion"),
+    "negative box size": ("UPDATE lidar_box SET length = -4.0 WHERE rowid = 1", None,
+                          "column length = -4.0; expected a positive size"),
+    "no camera": ("DELETE FROM camera", None, "the log has no camera"),
+    "no images": ("DELETE FROM image", None, "the log has no image"),
+    "no lidar": ("DELETE FROM lidar_pc", None, "table lidar_pc has no rows: the log has no LiDAR"),
+    "wrong image size": ("UPDATE camera SET width = 40", None, "image is 32x24, but table camera row"),
+}
 
 
-def _not_unit_quaternion(root):
-    sql(database_path(root), "UPDATE ego_pose SET qw = 2.0")
-    return "is not a unit quaternion"
-
-
-def _negative_box(root):
-    sql(database_path(root), "UPDATE lidar_box SET length = -4.0 WHERE rowid = 1")
-    return "column length = -4.0; expected a positive size"
+def _sql_case(statement: str, arg, needle: str):
+    def corrupt(root):
+        sql(database_path(root), statement, args=() if arg is None else (arg,))
+        return needle
+    return corrupt
 
 
 def _missing_image(root):
     path = first_blob(root, "CAM_F0")
     path.unlink()
     return f"{path}: missing image blob of CAM_F0"
-
-
-def _wrong_image_size(root):
-    sql(database_path(root), "UPDATE camera SET width = 40")
-    return "image is 32x24, but table camera row"
 
 
 def _no_lidar_blobs(root):
@@ -155,21 +129,6 @@ def _not_a_pcd(root):
     return str(path)
 
 
-def _no_camera(root):
-    sql(database_path(root), "DELETE FROM camera")
-    return "the log has no camera"
-
-
-def _no_images(root):
-    sql(database_path(root), "DELETE FROM image")
-    return "the log has no image"
-
-
-def _no_lidar(root):
-    sql(database_path(root), "DELETE FROM lidar_pc")
-    return "table lidar_pc has no rows: the log has no LiDAR"
-
-
 def _no_sensor_blobs(root):
     shutil.rmtree(blobs_path(root))
     return "no sensor_blobs folder beside the log database"
@@ -182,15 +141,10 @@ def _two_databases(root):
 
 CORRUPT = {
     "missing database": _missing_db, "garbage database": _garbage_db, "truncated database": _truncated_db,
-    "missing table": _missing_table, "missing column": _missing_column, "text timestamp": _text_timestamp,
-    "text coordinate": _text_coordinate, "number as foreign key": _number_foreign_key, "dangling track": _dangling_track,
-    "malicious pickle": _evil_pickle, "short translation": _short_translation,
-    "float in a pickle cell": _float_in_pickle_cell,
-    "pickle bomb": _pickle_bomb, "not a unit quaternion": _not_unit_quaternion,
-    "negative box size": _negative_box, "missing image blob": _missing_image, "wrong image size": _wrong_image_size,
-    "no lidar blobs": _no_lidar_blobs, "truncated pcd": _truncated_pcd, "not a pcd": _not_a_pcd,
-    "no camera": _no_camera, "no images": _no_images, "no lidar": _no_lidar, "no sensor blobs": _no_sensor_blobs,
+    "missing image blob": _missing_image, "no lidar blobs": _no_lidar_blobs,
+    "truncated pcd": _truncated_pcd, "not a pcd": _not_a_pcd, "no sensor blobs": _no_sensor_blobs,
     "two databases": _two_databases,
+    **{case: _sql_case(*spec) for case, spec in SQL_CASES.items()},
 }
 
 
