@@ -1,0 +1,196 @@
+"""nuPlan reader on a synthetic log written by the ``nuplan`` scene writer: the generator's
+ground truth (poses, boxes, intrinsics, points) back through the reader, frame choice, and a
+real ``omnire train`` run that trains and evaluates."""
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from omnire.api import first_pose_world
+from omnire_nuplan import CAMERAS, NuPlanConfig, category_of, parse_pcd
+from omnire_nuplan.dataparser import nearest_index
+from omnire_nuplan.writer import FIRST_US, LOG, blobs_path, database_path, load_source, write_nuplan
+
+FRAMES = 6
+
+
+def parse(data: Path, **kw):
+    return NuPlanConfig(data=data, scale=1.0, holdout_every=0, **kw).setup().parse()
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory):
+    from omnire_synthetic.generate import SynthOptions, generate
+
+    root = tmp_path_factory.mktemp("nuplan")
+    proc = root / "processed"
+    generate(proc, "urban", SynthOptions(frames=FRAMES, width=48, height=32, num_cameras=6, lidar_beams=16,
+                                         lidar_azimuth_step_deg=1.0, write_depth=False))
+    out = root / "nuplan"
+    src = load_source(proc)
+    summary = write_nuplan(src, out)
+    with np.load(out / "ground_truth.npz") as z:
+        gt = {k: z[k] for k in z.files}
+    G = gt["file_from_generator"]  # generator world -> nuPlan global
+    E = first_pose_world(G @ gt["ego_to_world"][0]) @ G  # generator world -> the reader's world
+    return SimpleNamespace(out=out, src=src, summary=summary, gt=gt, E=E, scene=parse(out))
+
+
+def test_layout_is_nuplan(synth):
+    db = database_path(synth.out)
+    assert db.parent.parts[-3:] == ("nuplan-v1.1", "splits", "mini") and db.stem == LOG
+    conn = sqlite3.connect(db)
+    try:
+        tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        assert {"log", "scene", "ego_pose", "camera", "image", "lidar", "lidar_pc", "lidar_box", "track",
+                "category"} <= tables
+        assert conn.execute("SELECT COUNT(*) FROM lidar_pc").fetchone()[0] == 2 * FRAMES - 1  # 20 Hz
+        assert conn.execute("SELECT COUNT(*) FROM image").fetchone()[0] == 6 * FRAMES  # 10 Hz
+        tok, fn = conn.execute("SELECT token, filename FROM lidar_pc ORDER BY timestamp").fetchone()
+        assert isinstance(tok, bytes) and len(tok) == 8
+        assert fn == f"{LOG}/MergedPointCloud/{tok.hex()}.pcd"
+        channels = [r[0] for r in conn.execute("SELECT channel FROM camera")]
+        assert sorted(channels) == sorted(CAMERAS[:6])
+    finally:
+        conn.close()
+    rec = parse_pcd((blobs_path(synth.out) / fn).read_bytes(), Path(fn))
+    assert rec.dtype.names == ("x", "y", "z", "intensity", "ring", "lidar_info")
+    assert rec["intensity"].max() > 1.0  # 0-255, as merged clouds hold it
+
+
+def test_frames_and_timestamps(synth):
+    s = synth.scene
+    assert s.num_frames == FRAMES and s.name == f"nuplan_{LOG}"
+    assert [c.name for c in s.cameras] == list(CAMERAS[:6])
+    expected = (FIRST_US + np.round(synth.gt["timestamps"] * 1e6)) * 1e-6
+    assert np.allclose(s.frame_timestamps, expected, atol=1e-6)
+    assert s.source_frames.tolist() == [2 * f for f in range(FRAMES)]  # every second lidar_pc
+    for cam in s.cameras:
+        assert np.array_equal(cam.timestamps, s.frame_timestamps) and cam.distortion is None
+
+
+def test_ground_truth_poses_intrinsics(synth):
+    s, gt, E = synth.scene, synth.gt, synth.E
+    ego = gt["ego_to_world"]
+    assert np.abs(s.ego_poses - E[None] @ ego).max() < 1e-6
+    for c, cam in enumerate(s.cameras):
+        assert np.abs(cam.intrinsics - gt["intrinsics"][c]).max() < 1e-6
+        assert np.abs(cam.cam_to_world - E[None] @ ego @ gt["cam_to_ego"][c]).max() < 1e-6
+        for f, path in enumerate(cam.image_paths):
+            assert Path(path).read_bytes() == Path(synth.src.scene.cameras[c].image_paths[f]).read_bytes()
+
+
+def test_ground_truth_boxes(synth):
+    s, gt, E = synth.scene, synth.gt, synth.E
+    assert len(s.tracks) == int(gt["present"].any(axis=1).sum()) > 0
+    # Track tokens are the writer's per-actor tokens; match tracks through their category and poses.
+    for i in range(len(gt["track_ids"])):
+        present = gt["present"][i].astype(bool)
+        if not present.any():
+            continue
+        want = E[None] @ gt["box_poses_written"][i]
+        hits = [t for t in s.tracks if np.array_equal(t.present, present)
+                and np.abs(t.poses[present] - want[present]).max() < 1e-6]
+        assert len(hits) == 1, f"actor {gt['track_ids'][i]}"
+        t = hits[0]
+        assert np.abs(t.size - gt["box_sizes"][i]).max() < 1e-6  # (length, width, height)
+        kind = str(gt["track_kinds"][i])
+        assert t.category == {"car": "vehicle", "pedestrian": "human", "cyclist": "cyclist"}[kind]
+
+
+def test_lidar_points(synth):
+    s, E = synth.scene, synth.E
+    for f in range(FRAMES):
+        want = synth.src.points(f) @ E[:3, :3].T + E[:3, 3]
+        got = s.lidar.points[f]
+        assert got.shape == want.shape and np.abs(got - want).max() < 1e-4  # float32 blobs
+    origin = synth.E @ synth.gt["ego_to_world"][0] @ np.append(synth.src.lidar_to_ego[:3, 3], 1.0)
+    assert np.abs(s.lidar.origins[0] - origin[:3]).max() < 1e-6
+
+
+def test_frame_step_range_and_cameras(synth):
+    every = parse(synth.out, frame_step=1, load_lidar=False)
+    assert every.num_frames == 2 * FRAMES - 1 and every.source_frames.tolist() == list(range(2 * FRAMES - 1))
+    # In-between sweeps take the nearest (earlier, on a tie) image.
+    assert np.allclose(every.cameras[0].timestamps[1], every.frame_timestamps[0])
+    part = parse(synth.out, start_frame=2, end_frame=5, cameras=("CAM_L1", "CAM_F0"), load_lidar=False)
+    assert part.num_frames == 3 and [c.name for c in part.cameras] == ["CAM_L1", "CAM_F0"]
+    assert np.allclose(part.frame_timestamps, synth.scene.frame_timestamps[2:5])
+    scaled = NuPlanConfig(data=database_path(synth.out), scale=0.5, load_lidar=False).setup().parse()
+    assert (scaled.cameras[0].width, scaled.cameras[0].height) == (24, 16)
+    assert np.allclose(scaled.cameras[0].intrinsics[:2], synth.gt["intrinsics"][0][:2] * 0.5)
+    assert len(scaled.test_frames) == 0 or scaled.test_frames.min() > 0
+
+
+def test_category_mapping():
+    assert [category_of(n) for n in ("vehicle", "pedestrian", "bicycle", "traffic_cone", "barrier", "czone_sign",
+                                     "generic_object")] == ["vehicle", "human", "cyclist"] + ["other"] * 4
+
+
+def test_nearest_index_matches_brute_force():
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 7, 50):
+        times = np.sort(rng.choice(10_000, n, replace=False)).astype(np.int64)
+        query = rng.integers(-500, 10_500, 200)
+        query[:n] = times  # exact hits
+        query[n:2 * n - 1] = (times[:-1] + times[1:]) // 2 if n > 1 else query[n:2 * n - 1]  # (near-)ties
+        brute = np.array([int(np.argmin(np.abs(times - q))) for q in query])  # argmin: the earlier on ties
+        assert np.array_equal(nearest_index(times, query), brute)
+
+
+def test_explicit_sensor_blobs(synth):
+    s = NuPlanConfig(data=database_path(synth.out), sensor_blobs=blobs_path(synth.out), scale=1.0,
+                     load_lidar=False).setup().parse()
+    assert np.array_equal(s.cameras[0].cam_to_world, synth.scene.cameras[0].cam_to_world)
+
+
+def test_plugin_listed():
+    """``omnire plugins`` (the real CLI) lists the dataparser and the scene writer with their distribution."""
+    out = subprocess.run([sys.executable, "-m", "omnire.cli", "plugins"], capture_output=True, text=True,
+                         env=dict(os.environ, COLUMNS="250"), timeout=300)
+    assert out.returncode == 0, out.stderr
+    rows = [line for line in out.stdout.splitlines() if " nuplan " in line]
+    assert len(rows) == 2 and all("omnire-dataparser-nuplan" in r for r in rows), out.stdout
+
+
+def test_synth_format_and_train_omnire(tmp_path):
+    """The real CLI: ``omnire synth --format nuplan``, then ``omnire train omnire nuplan``
+    trains a few steps and evaluates the held-out frames."""
+    from omnire_synthetic.cli import main as synth_main
+
+    scene = tmp_path / "tiny_nuplan"
+    assert synth_main(["urban", str(scene), "--tiny", "--format", "nuplan"]) == 0
+    assert database_path(scene).is_file() and not (scene / "images").exists()
+    env = dict(os.environ, OMP_NUM_THREADS="1", COLUMNS="200")
+    runs = tmp_path / "runs"
+    out = subprocess.run(
+        [sys.executable, "-m", "omnire.cli", "train", "omnire", "nuplan", "--data", str(scene), "--scale", "0.5",
+         "--cameras", "CAM_F0", "--end-frame", "5", "--holdout-every", "4", "--trainer.max-steps", "3",
+         "--trainer.no-progress", "--method.rasterizer", "torch", "--method.nodes.background.max-lidar-points", "1000",
+         "--method.nodes.background.num-far-points", "100", "--trainer.output-dir", str(runs)],
+        capture_output=True, text=True, env=env, timeout=900)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    assert f"nuplan_{LOG}" in out.stdout
+    metrics = list(runs.rglob("metrics.jsonl"))
+    assert len(metrics) == 1, f"metrics under {runs}: {metrics}"
+    final = json.loads(metrics[0].read_text().splitlines()[-1])
+    assert final["final"] and final["step"] == 3
+    psnrs = [v for k, v in _leaves(final["eval"]) if "psnr" in k and isinstance(v, (int, float))]
+    assert psnrs and all(np.isfinite(psnrs)), final["eval"]
+
+
+def _leaves(tree, prefix=""):
+    """(dotted key, value) of every leaf of nested dicts."""
+    if isinstance(tree, dict):
+        for k, v in tree.items():
+            yield from _leaves(v, f"{prefix}.{k}" if prefix else str(k))
+    else:
+        yield prefix, tree
