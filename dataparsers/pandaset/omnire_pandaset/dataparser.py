@@ -378,6 +378,7 @@ class PandasetDataparser(Dataparser):
     # -- checks ---------------------------------------------------------------------------
     def _check_options(self, root: Path) -> None:
         cfg = self.config
+        cfg.check()
         on_disk = [c for c in CAMERAS if (root / "camera" / c).is_dir()]
         if not cfg.cameras:
             raise SceneDataError(f"cameras: empty; cameras in {root / 'camera'}: {on_disk}")
@@ -400,7 +401,6 @@ class PandasetDataparser(Dataparser):
                 f"lidar_sensors: {list(cfg.lidar_sensors)}; expected a non-empty subset of "
                 f"{ {k: v for k, v in LIDAR_SENSORS.items()} }"
             )
-        cfg.check()
         if cfg.max_lidar_points_per_frame < 0:
             raise SceneDataError(
                 f"max_lidar_points_per_frame: {cfg.max_lidar_points_per_frame}, expected >= 0 (0 keeps all)"
