@@ -93,6 +93,7 @@ from omnire.data.dataparser import (
     MaxTrackGap,
     hold_absent_poses,
     is_stationary,
+    loaded_camera,
     loaded_intrinsics,
     majority_label,
     require_files,
@@ -118,6 +119,6 @@ __all__ = [
     "placed_output", "Placement",
     "visible_in_cameras", "voxel_downsample", "write_png",
     # Shared by dataset readers (dataparsers).
-    "STATIONARY_THRESHOLD", "MaxTrackGap", "hold_absent_poses", "is_stationary", "loaded_intrinsics",
-    "majority_label", "require_files", "resample_track", "thin_points",
+    "STATIONARY_THRESHOLD", "MaxTrackGap", "hold_absent_poses", "is_stationary", "loaded_camera",
+    "loaded_intrinsics", "majority_label", "require_files", "resample_track", "thin_points",
 ]

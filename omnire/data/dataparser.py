@@ -12,7 +12,7 @@ import numpy as np
 import tyro
 
 from omnire.config import InstantiateConfig
-from omnire.data.scene import SceneData, holdout_split
+from omnire.data.scene import CameraSequence, SceneData, holdout_split
 
 STATIONARY_THRESHOLD = 0.5
 """Default of ``stationary_threshold`` (m) in every reader; see :func:`is_stationary` and
@@ -186,6 +186,16 @@ def loaded_intrinsics(K: np.ndarray, width: int, height: int, scale: float,
                     [0.0, K[1, 1] * sy, (K[1, 2] + shift) * sy],
                     [0.0, 0.0, 1.0]])
     return w_out, h_out, out
+
+
+def loaded_camera(name: str, image_paths: Sequence[Path], K: np.ndarray, size: tuple[int, int], scale: float,
+                  pixel_centres: Literal["half", "integer"] = "half", **fields) -> CameraSequence:
+    """The :class:`~omnire.data.scene.CameraSequence` of camera ``name`` whose images
+    ``image_paths`` are ``size`` (width, height) px on disk with K (3, 3) in the
+    ``pixel_centres`` convention, loaded at ``scale`` (:func:`loaded_intrinsics`); ``fields``
+    are its other fields (cam_to_world, timestamps, distortion, masks, extras)."""
+    width, height, K = loaded_intrinsics(K, size[0], size[1], scale, pixel_centres)
+    return CameraSequence(name=name, width=width, height=height, intrinsics=K, image_paths=list(image_paths), **fields)
 
 
 def hold_absent_poses(poses: np.ndarray, present: np.ndarray) -> np.ndarray:

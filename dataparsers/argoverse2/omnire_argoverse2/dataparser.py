@@ -33,6 +33,7 @@ from omnire.api import (
     first_pose_world,
     frame_range,
     is_stationary,
+    loaded_camera,
     majority_label,
     MaxTrackGap,
     resample_track,
@@ -161,15 +162,10 @@ class Argoverse2Dataparser(Dataparser):
         if size != (intr.width, intr.height):
             raise Av2LogError(f"{chosen[0]}: image is {size[0]}x{size[1]} but {calib / 'intrinsics.feather'} gives "
                               f"{name} width_px x height_px = {intr.width}x{intr.height}")
-        w_out, h_out = max(1, round(intr.width * cfg.scale)), max(1, round(intr.height * cfg.scale))
         cam_ns = image_ns[pick]
-        return CameraSequence(
-            name=name,
-            width=w_out,
-            height=h_out,
-            intrinsics=intr.K(w_out, h_out),
+        return loaded_camera(  # AV2 centres pixels at integers (omnire_argoverse2.log.CameraIntrinsics)
+            name, chosen, intr.matrix, size, cfg.scale, "integer",
             cam_to_world=world[None] @ ego.at(cam_ns) @ cam_to_ego[None],  # (F, 4, 4) OpenCV camera-to-world
-            image_paths=chosen,
             timestamps=cam_ns * 1e-9,
             distortion=intr.distortion,
             extras={"timestamp_ns": cam_ns, "offset_from_sweep_s": offset * 1e-9},

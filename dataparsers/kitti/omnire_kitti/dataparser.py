@@ -46,8 +46,8 @@ import numpy as np
 from omnire.api import (
     image_size,
     ActorTrack,
-    axis_rotation,
     CameraSequence,
+    axis_rotation,
     ConfigError,
     Dataparser,
     LidarSweeps,
@@ -57,7 +57,7 @@ from omnire.api import (
     first_pose_world,
     frame_range,
     is_stationary,
-    loaded_intrinsics,
+    loaded_camera,
     majority_label,
     MaxTrackGap,
     require_files,
@@ -319,17 +319,10 @@ class KittiDataparser(Dataparser):
         cam_to_rect[:3, 3] = -t  # camera centre in rectified camera-0 coordinates
         paths = [split / name / seq / f"{f:06d}.png" for f in frames]
         require_files(paths, f"image of {name}", KittiFileMissing)
-        w_out, h_out, K = loaded_intrinsics(K0, *image_size(paths[0]), self.config.scale, "integer")
-        return CameraSequence(
-            name=name,
-            width=w_out,
-            height=h_out,
-            intrinsics=K,
-            cam_to_world=rect_to_world @ cam_to_rect,  # rectified axes are OpenCV's
-            image_paths=paths,
-            timestamps=times.copy(),  # triggered by the Velodyne: the frame time
-            distortion=None,  # rectified images
-        )
+        return loaded_camera(name, paths, K0, image_size(paths[0]), self.config.scale, "integer",
+                             cam_to_world=rect_to_world @ cam_to_rect,  # rectified axes are OpenCV's
+                             timestamps=times.copy(),  # triggered by the Velodyne: the frame time
+                             distortion=None)  # rectified images
 
     def _lidar(self, split: Path, seq: str, frames: np.ndarray, velo_to_world: np.ndarray) -> Optional[LidarSweeps]:
         cfg = self.config

@@ -56,7 +56,7 @@ from omnire.api import (
     first_pose_world,
     frame_range,
     is_stationary,
-    loaded_intrinsics,
+    loaded_camera,
     MaxTrackGap,
     resample_track,
     thin_points,
@@ -288,24 +288,14 @@ class NuScenesDataparser(Dataparser):
         if (w_disk, h_disk) != (width, height):
             raise NuScenesDataError(f"{paths[0]}: image is {w_disk}x{h_disk}, but sample_data {sds[0]['token']!r} "
                                     f"fields 'width', 'height' say {width}x{height}")
-        # Pixel centres at +0.5 already (module docstring): K is only scaled.
-        w_out, h_out, K = loaded_intrinsics(K0, width, height, self.config.scale, "half")
         c2w = np.stack([world @ ego_of(r) @ calib_of(r) for r in sds])  # (F, 4, 4) OpenCV cam -> world
-        return CameraSequence(
-            name=name,
-            width=w_out,
-            height=h_out,
-            intrinsics=K,
-            cam_to_world=c2w,
-            image_paths=paths,
-            timestamps=np.array([int(r["timestamp"]) for r in sds], dtype=np.int64) * 1e-6,
-            distortion=None,  # nuScenes images are undistorted (schema: calibrated_sensor)
-            ego_mask_path=self._ego_mask(name),
-            extras={
-                "sample_data_token": np.array([str(r["token"]) for r in sds]),
-                "is_key_frame": np.array([bool(r["is_key_frame"]) for r in sds]),
-            },
-        )
+        extras = {"sample_data_token": np.array([str(r["token"]) for r in sds]),
+                  "is_key_frame": np.array([bool(r["is_key_frame"]) for r in sds])}
+        # Pixel centres at +0.5 already (module docstring): K is only scaled.
+        return loaded_camera(name, paths, K0, (width, height), self.config.scale, "half", cam_to_world=c2w,
+                             timestamps=np.array([int(r["timestamp"]) for r in sds], dtype=np.int64) * 1e-6,
+                             distortion=None,  # nuScenes images are undistorted (schema: calibrated_sensor)
+                             ego_mask_path=self._ego_mask(name), extras=extras)
 
     def _ego_mask(self, name: str) -> Optional[Path]:
         folder = self.config.ego_mask_dir

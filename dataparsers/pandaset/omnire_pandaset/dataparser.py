@@ -50,7 +50,7 @@ from omnire.data.scene import (
 )
 from omnire.io import safe_pickle
 from omnire.api import image_size, MissingFileError, quat_to_rotmat, rot_z
-from omnire.api import hold_absent_poses, loaded_intrinsics, require_files, thin_points
+from omnire.api import hold_absent_poses, loaded_camera, require_files, thin_points
 
 CAMERAS = (
     "front_camera",
@@ -444,17 +444,10 @@ class PandasetDataparser(Dataparser):
         # devkit's projection keeps 0 < u < width, 0 < v < height), omnire's convention: no
         # shift, and resizing is a plain multiplication (the processed reader agrees).
         K0 = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        w_out, h_out, K = loaded_intrinsics(K0, *image_size(paths[0]), self.config.scale, "half")
-        return CameraSequence(
-            name=name,
-            width=w_out,
-            height=h_out,
-            intrinsics=K,
-            cam_to_world=world[None] @ poses[frames],  # (F, 4, 4) OpenCV camera-to-world
-            image_paths=paths,
-            ego_mask_path=EGO_MASKS.get(name),
-            timestamps=np.asarray(times, dtype=np.float64)[frames],
-        )
+        return loaded_camera(name, paths, K0, image_size(paths[0]), self.config.scale, "half",
+                             cam_to_world=world[None] @ poses[frames],  # (F, 4, 4) OpenCV camera-to-world
+                             ego_mask_path=EGO_MASKS.get(name),
+                             timestamps=np.asarray(times, dtype=np.float64)[frames])
 
     def _lidar(
         self, lidar_dir: Path, lidar_poses: np.ndarray, frames: np.ndarray, source_frames: np.ndarray, world: np.ndarray

@@ -51,7 +51,7 @@ from typing import Literal, Optional, Type
 import numpy as np
 
 from omnire.api import image_size
-from omnire.api import STATIONARY_THRESHOLD, is_stationary, loaded_intrinsics
+from omnire.api import STATIONARY_THRESHOLD, is_stationary, loaded_camera
 
 from omnire.data.dataparser import Dataparser, DataparserConfig
 from omnire.data.scene import (
@@ -308,7 +308,6 @@ class ProcessedDataparser(Dataparser):
         centres = self.config.file_pixel_centres
         self.pixel_centres = formats.PIXEL_CENTRES[source] if centres == "auto" else centres
         K0 = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        W, H, K = loaded_intrinsics(K0, *image_size(images[0]), self.config.scale, self.pixel_centres)
         names = formats.CAMERA_NAMES.get(source, ())
         name = names[cam] if cam < len(names) else f"camera_{cam}"
         sky = self._mask_paths(root / "sky_masks", cam, frames)
@@ -320,18 +319,9 @@ class ProcessedDataparser(Dataparser):
             paths = self._mask_paths(dyn_root / kind, cam, frames)
             if paths is not None:
                 dyn[kind] = paths
-        return CameraSequence(
-            name=name,
-            width=W,
-            height=H,
-            intrinsics=K,
-            distortion=distortion,
-            cam_to_world=align @ c2w_file,
-            image_paths=images,
-            timestamps=frames / self.config.fps,
-            sky_mask_paths=sky,
-            dynamic_mask_paths=dyn or None,
-        )
+        return loaded_camera(name, images, K0, image_size(images[0]), self.config.scale, self.pixel_centres,
+                             distortion=distortion, cam_to_world=align @ c2w_file, timestamps=frames / self.config.fps,
+                             sky_mask_paths=sky, dynamic_mask_paths=dyn or None)
 
     @staticmethod
     def _image_path(folder: Path, stem: str) -> Path:

@@ -54,7 +54,7 @@ from omnire.api import (
     first_pose_world,
     frame_range,
     is_stationary,
-    loaded_intrinsics,
+    loaded_camera,
     majority_label,
     resample_track,
     thin_points,
@@ -494,15 +494,10 @@ class WaymoDataparser(Dataparser):
         c = cam.calib
         f_u, f_v, c_u, c_v = c.intrinsic[:4]
         K0 = np.array([[f_u, 0.0, c_u], [0.0, f_v, c_v], [0.0, 0.0, 1.0]])
-        w_out, h_out, K = loaded_intrinsics(K0, c.width, c.height, self.config.scale, "half")  # module docstring
         F = len(cam.paths)
-        return CameraSequence(
-            name=cam.name,
-            width=w_out,
-            height=h_out,
-            intrinsics=K,
+        return loaded_camera(  # pixel centres at +0.5 (module docstring)
+            cam.name, cam.paths, K0, (c.width, c.height), self.config.scale, "half",
             cam_to_world=np.stack(cam.c2w),
-            image_paths=cam.paths,
             timestamps=np.asarray(cam.times, dtype=np.float64),
             distortion=np.asarray(c.intrinsic[4:9], dtype=np.float64),
             extras={
