@@ -99,6 +99,7 @@ from omnire.data.dataparser import (
     require_files,
     resample_track,
 )
+from omnire.data.images import read_image
 from omnire.pointcloud import thin_points
 
 __all__ = [
@@ -120,5 +121,5 @@ __all__ = [
     "visible_in_cameras", "voxel_downsample", "write_png",
     # Shared by dataset readers (dataparsers).
     "STATIONARY_THRESHOLD", "MaxTrackGap", "hold_absent_poses", "is_stationary", "loaded_camera",
-    "loaded_intrinsics", "majority_label", "require_files", "resample_track", "thin_points",
+    "loaded_intrinsics", "majority_label", "read_image", "require_files", "resample_track", "thin_points",
 ]

@@ -22,22 +22,9 @@ from typing import Type
 import numpy as np
 
 from omnire.api import (
-    image_size,
-    ActorTrack,
-    CameraSequence,
-    Dataparser,
-    LidarSweeps,
-    LogDataparserConfig,
-    SceneData,
-    STATIONARY_THRESHOLD,
-    first_pose_world,
-    frame_range,
-    is_stationary,
-    loaded_camera,
-    majority_label,
-    MaxTrackGap,
-    resample_track,
-    thin_points,
+    ActorTrack, CameraSequence, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap, STATIONARY_THRESHOLD,
+    SceneData, first_pose_world, frame_range, image_size, is_stationary, loaded_camera, majority_label,
+    resample_track, thin_points,
 )
 from omnire_argoverse2 import log as av2
 from omnire_argoverse2.log import Av2LogError

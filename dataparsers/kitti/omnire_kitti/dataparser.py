@@ -44,25 +44,9 @@ from typing import Literal, Optional, Type
 import numpy as np
 
 from omnire.api import (
-    image_size,
-    ActorTrack,
-    CameraSequence,
-    axis_rotation,
-    ConfigError,
-    Dataparser,
-    LidarSweeps,
-    LogDataparserConfig,
-    SceneData,
-    SceneDataError,
-    first_pose_world,
-    frame_range,
-    is_stationary,
-    loaded_camera,
-    majority_label,
-    MaxTrackGap,
-    require_files,
-    resample_track,
-    thin_points,
+    ActorTrack, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap, SceneData,
+    SceneDataError, axis_rotation, first_pose_world, frame_range, image_size, is_stationary, loaded_camera,
+    majority_label, require_files, resample_track, thin_points,
 )
 
 CAMERAS = ("image_02", "image_03")

@@ -45,21 +45,8 @@ from typing import Optional, Type
 import numpy as np
 
 from omnire.api import (
-    image_size,
-    ActorTrack,
-    CameraSequence,
-    ConfigError,
-    Dataparser,
-    LidarSweeps,
-    LogDataparserConfig,
-    SceneData,
-    first_pose_world,
-    frame_range,
-    is_stationary,
-    loaded_camera,
-    MaxTrackGap,
-    resample_track,
-    thin_points,
+    ActorTrack, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap, SceneData,
+    first_pose_world, frame_range, image_size, is_stationary, loaded_camera, resample_track, thin_points,
 )
 from omnire_nuscenes.tables import (
     NuScenesDataError,

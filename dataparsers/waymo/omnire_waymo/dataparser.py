@@ -41,24 +41,9 @@ from typing import Literal, Optional, Type
 import numpy as np
 
 from omnire.api import (
-    MissingFileError,
-    rot_z,
-    ActorTrack,
-    CameraSequence,
-    ConfigError,
-    Dataparser,
-    LidarSweeps,
-    LogDataparserConfig,
-    SceneData,
-    SceneDataError,
-    first_pose_world,
-    frame_range,
-    is_stationary,
-    loaded_camera,
-    majority_label,
-    resample_track,
-    thin_points,
-    user_cache_dir,
+    ActorTrack, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MissingFileError,
+    SceneData, SceneDataError, first_pose_world, frame_range, is_stationary, loaded_camera, majority_label,
+    resample_track, rot_z, thin_points, user_cache_dir,
 )
 from omnire_waymo import rangeimage
 from omnire_waymo.tfrecord import RecordSpan, TFRecordReader
