@@ -50,17 +50,9 @@ from typing import Literal, Optional, Type
 
 import numpy as np
 
-from omnire.api import image_size
-from omnire.api import STATIONARY_THRESHOLD, is_stationary, loaded_camera
-
-from omnire.data.dataparser import Dataparser, DataparserConfig
-from omnire.data.scene import (
-    ActorTrack,
-    CameraSequence,
-    HumanPoseSequence,
-    LidarSweeps,
-    SceneData,
-    SceneDataError,
+from omnire.api import (
+    STATIONARY_THRESHOLD, ActorTrack, CameraSequence, Dataparser, DataparserConfig, HumanPoseSequence, LidarSweeps,
+    SceneData, SceneDataError, image_size, is_stationary, loaded_camera,
 )
 from omnire_processed import boxes, formats
 from omnire_processed.formats import LIDAR_LAYOUTS, WAYMO_TO_OPENCV, category_of
