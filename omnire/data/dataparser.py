@@ -19,9 +19,9 @@ STATIONARY_THRESHOLD = 0.5
 docs/datasets.md (Shared options) for why 0.5."""
 
 MaxTrackGap = Annotated[float, tyro.conf.arg(aliases=("--max-box-gap",))]
-"""Type of ``max_track_gap``: its readers redeclare the field with this type to change the
-default. ``--max-box-gap`` is the name the KITTI and nuScenes readers gave the option before,
-kept so that the recorded command lines of their runs (run.json ``argv``) still load."""
+"""Type of ``max_track_gap`` in the KITTI and nuScenes readers, which called the option
+``--max-box-gap`` before: the old spelling stays accepted so that the recorded command lines
+of their runs (run.json ``argv``) still load. Other readers declare a plain float."""
 
 
 @dataclasses.dataclass
@@ -61,7 +61,7 @@ class LogDataparserConfig(DataparserConfig):
     """Load LiDAR (used for initialisation and the depth loss)."""
     max_lidar_points_per_frame: int = 0
     """Randomly thin each sweep to at most this many points (the same points whatever frames are loaded); 0 keeps all."""
-    max_track_gap: MaxTrackGap = 1.0
+    max_track_gap: float = 1.0
     """Interpolate a track across unannotated frames when the annotations around them are at most this many seconds apart; across longer gaps the actor is absent. 0 keeps the annotated frames only."""
     stationary_threshold: float = STATIONARY_THRESHOLD
     """A track is stationary when the medians of its box centres over the first and last thirds of its loaded frames are less than this many metres apart."""

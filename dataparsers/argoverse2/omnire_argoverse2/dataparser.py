@@ -22,7 +22,7 @@ from typing import Type
 import numpy as np
 
 from omnire.api import (
-    ActorTrack, CameraSequence, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap, STATIONARY_THRESHOLD,
+    ActorTrack, CameraSequence, Dataparser, LidarSweeps, LogDataparserConfig, STATIONARY_THRESHOLD,
     SceneData, first_pose_world, frame_range, image_size, is_stationary, loaded_camera, majority_label,
     resample_track, thin_points,
 )
@@ -48,7 +48,7 @@ class Argoverse2Config(LogDataparserConfig):
     """With the default camera set, also load stereo_front_left and stereo_front_right."""
     max_camera_offset: float = 0.05
     """Largest |image time - sweep time| in seconds for the image nearest a sweep (cameras run at 20 Hz, so normally at most 0.025)."""
-    max_track_gap: MaxTrackGap = 0.35
+    max_track_gap: float = 0.35
     """Sweeps inside a track's annotated span but unannotated (occlusions) get poses interpolated when the annotations around them are at most this many seconds apart (cuboids come at 10 Hz); 0 interpolates nothing."""
 
 
