@@ -96,7 +96,7 @@ class Dataparser:
         apply_ego_mask_choice(scene, self.config.ego_masks)
         return scene.validate()
 
-    def scene(self, name: str, cameras: list, frame_timestamps: np.ndarray, source_frames: np.ndarray,
+    def build_scene(self, name: str, cameras: list, frame_timestamps: np.ndarray, source_frames: np.ndarray,
               **fields) -> SceneData:
         """The validated :class:`SceneData` of the loaded frames, split for evaluation by the
         config's ``holdout_every``; ``fields`` are SceneData's other fields (lidar, tracks,

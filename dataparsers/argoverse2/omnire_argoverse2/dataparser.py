@@ -84,8 +84,9 @@ class Argoverse2Dataparser(Dataparser):
         ann = av2.read_annotations(root)  # None in the AV2 test split: no actors
         tracks = [] if ann is None else load_tracks(ann, root / "annotations.feather", frame_ns, ego, world,
                                                     cfg.max_track_gap, cfg.stationary_threshold)
-        return self.scene(f"av2_{root.resolve().name}", cameras, frame_ns * 1e-9, np.arange(frames.start, frames.stop),
-                          lidar=lidar, tracks=tracks, ego_poses=world[None] @ city_ego, attribution=ATTRIBUTION)
+        return self.build_scene(f"av2_{root.resolve().name}", cameras, frame_ns * 1e-9,
+                                np.arange(frames.start, frames.stop), lidar=lidar, tracks=tracks,
+                                ego_poses=world[None] @ city_ego, attribution=ATTRIBUTION)
 
     # -- layout ------------------------------------------------------------------------------
     @staticmethod

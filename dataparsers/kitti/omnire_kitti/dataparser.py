@@ -248,8 +248,8 @@ class KittiDataparser(Dataparser):
                    for name in self._camera_names(split, seq)]
         lidar = self._lidar(split, seq, frames, world[None] @ imu_poses[frames] @ imu_from_velo) if cfg.load_lidar else None
         tracks = self._tracks(split / "label_02" / f"{seq}.txt", n_log, frames, times, rect_to_world)
-        return self.scene(f"kitti_{split.name}_{seq}", cameras, times, frames, lidar=lidar, tracks=tracks,
-                          ego_poses=world[None] @ imu_poses[frames], attribution=ATTRIBUTION)
+        return self.build_scene(f"kitti_{split.name}_{seq}", cameras, times, frames, lidar=lidar, tracks=tracks,
+                                ego_poses=world[None] @ imu_poses[frames], attribution=ATTRIBUTION)
 
     # -- options -------------------------------------------------------------------------------
     def _check_options(self) -> None:

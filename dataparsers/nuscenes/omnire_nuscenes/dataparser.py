@@ -170,8 +170,8 @@ class NuScenesDataparser(Dataparser):
         cams = [self._camera(root, tables, name, cam_sds[name], calibs, ego_of, calib_of, world) for name in cameras]
         lidar = self._lidar(root, frame_sds, ego_frames, calib_of, world) if cfg.load_lidar else None
         tracks = self._tracks(tables, samples, key_t, frame_us, world)
-        return self.scene(f"nuscenes_{scene['name']}", cams, frame_us * 1e-6, np.arange(rng.start, rng.stop),
-                          lidar=lidar, tracks=tracks, ego_poses=world[None] @ ego_frames, attribution=ATTRIBUTION)
+        return self.build_scene(f"nuscenes_{scene['name']}", cams, frame_us * 1e-6, np.arange(rng.start, rng.stop),
+                                lidar=lidar, tracks=tracks, ego_poses=world[None] @ ego_frames, attribution=ATTRIBUTION)
 
     # -- options and tables -------------------------------------------------------------------
     def _check_options(self) -> None:

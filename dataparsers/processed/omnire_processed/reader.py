@@ -211,8 +211,8 @@ class ProcessedDataparser(Dataparser):
             human = self._human_poses(root, n_full, frames, align, source, per_frame, poses_file, key_to_track)
         for note in self.notes:
             warnings.warn(f"{root}: {note}", stacklevel=2)
-        return self.scene(root.name, cameras, timestamps, frames, lidar=lidar, tracks=tracks, human_poses=human,
-                          ego_poses=ego_poses)
+        return self.build_scene(root.name, cameras, timestamps, frames, lidar=lidar, tracks=tracks, human_poses=human,
+                                ego_poses=ego_poses)
 
     def _camera_ids(self, root: Path) -> list[int]:
         intr = root / "intrinsics"

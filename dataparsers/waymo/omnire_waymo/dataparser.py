@@ -471,9 +471,9 @@ class WaymoDataparser(Dataparser):
             else:
                 warnings.warn(f"{self.path}: no range images in the loaded frames; the scene has no LiDAR", stacklevel=3)
         synthetic = self.context_name.startswith(SYNTHETIC_PREFIX)
-        return self.scene(self.context_name or self.path.stem, cameras, times, selected, lidar=lidar,
-                          tracks=self._tracks(times), ego_poses=self.world[None] @ np.stack(self.ego_global),
-                          attribution=SYNTHETIC_ATTRIBUTION if synthetic else ATTRIBUTION)
+        return self.build_scene(self.context_name or self.path.stem, cameras, times, selected, lidar=lidar,
+                                tracks=self._tracks(times), ego_poses=self.world[None] @ np.stack(self.ego_global),
+                                attribution=SYNTHETIC_ATTRIBUTION if synthetic else ATTRIBUTION)
 
     def _camera(self, cam: _CameraFrames) -> CameraSequence:
         c = cam.calib
