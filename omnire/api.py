@@ -87,6 +87,21 @@ from omnire.runconfig import TrainConfig, TrainerConfig
 from omnire.runtime import Reconstruction
 from omnire.trainer import Trainer
 
+# Shared by dataset readers (dataparsers): option checks, camera sizes, tracks, LiDAR thinning.
+from omnire.data.dataparser import (
+    STATIONARY_THRESHOLD,
+    MaxTrackGap,
+    hold_absent_poses,
+    is_stationary,
+    loaded_camera,
+    loaded_intrinsics,
+    majority_label,
+    require_files,
+    resample_track,
+)
+from omnire.data.images import read_image
+from omnire.pointcloud import thin_points
+
 __all__ = [
     "CATEGORIES", "GAUSSIAN_KEYS", "MissingFileError", "ActorNode", "ActorState", "ActorPoses", "ActorTrack", "BackgroundConfig", "BoxActorConfig",
     "BoxActorNode", "Camera", "CameraSequence", "CommandSpec", "ConfigError", "Dataparser", "DataparserConfig",
@@ -104,4 +119,7 @@ __all__ = [
     "to_tensor", "track_displacement", "train_frame_bracket", "transform_instances", "usable_track", "user_cache_dir",
     "placed_output", "Placement",
     "visible_in_cameras", "voxel_downsample", "write_png",
+    # Shared by dataset readers (dataparsers).
+    "STATIONARY_THRESHOLD", "MaxTrackGap", "hold_absent_poses", "is_stationary", "loaded_camera",
+    "loaded_intrinsics", "majority_label", "read_image", "require_files", "resample_track", "thin_points",
 ]

@@ -1,5 +1,6 @@
-"""Point-cloud helpers for initialising nodes: voxel downsampling, nearest-neighbour
-scales, colouring from images, far-field shells, points-in-box tests."""
+"""Point-cloud helpers: thinning LiDAR sweeps (readers), and for initialising nodes voxel
+downsampling, nearest-neighbour scales, colouring from images, far-field shells,
+points-in-box tests."""
 from __future__ import annotations
 
 from typing import Optional
@@ -7,6 +8,21 @@ from typing import Optional
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+
+
+THIN_SEED = 0
+"""Seed of :func:`thin_points`, combined with the key of each sweep."""
+
+
+def thin_points(points: np.ndarray, max_points: int, key: int) -> np.ndarray:
+    """(N, ...) rows -> (min(N, max_points), ...) rows drawn at random without replacement,
+    in their original order; ``max_points`` 0 keeps all. The draw is seeded by
+    (:data:`THIN_SEED`, ``key``): a reader passes something fixed per sweep (its timestamp or
+    frame number in the log), so a sweep is thinned the same way whatever frames are loaded."""
+    if not 0 < max_points < len(points):
+        return points
+    rng = np.random.default_rng((THIN_SEED, int(key)))
+    return points[np.sort(rng.choice(len(points), max_points, replace=False))]
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:

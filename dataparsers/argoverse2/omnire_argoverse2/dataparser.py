@@ -22,17 +22,9 @@ from typing import Type
 import numpy as np
 
 from omnire.api import (
-    image_size,
-    ActorTrack,
-    CameraSequence,
-    Dataparser,
-    LidarSweeps,
-    LogDataparserConfig,
-    SceneData,
-    first_pose_world,
-    frame_range,
-    holdout_split,
-    interpolate_track,
+    ActorTrack, CameraSequence, Dataparser, LidarSweeps, LogDataparserConfig, STATIONARY_THRESHOLD,
+    SceneData, first_pose_world, frame_range, image_size, is_stationary, loaded_camera, majority_label,
+    resample_track, thin_points,
 )
 from omnire_argoverse2 import log as av2
 from omnire_argoverse2.log import Av2LogError
@@ -41,8 +33,6 @@ ATTRIBUTION = (
     '"Argoverse 2: Next Generation Datasets for Self-Driving Perception and Forecasting", Wilson et al., '
     "NeurIPS Datasets and Benchmarks 2021; Argoverse data by Argo AI, CC BY-NC-SA 4.0 (non-commercial)."
 )
-_LIDAR_SEED = 0
-"""Seed of the per-sweep LiDAR thinning (combined with the sweep timestamp)."""
 
 
 @dataclasses.dataclass
@@ -58,12 +48,8 @@ class Argoverse2Config(LogDataparserConfig):
     """With the default camera set, also load stereo_front_left and stereo_front_right."""
     max_camera_offset: float = 0.05
     """Largest |image time - sweep time| in seconds for the image nearest a sweep (cameras run at 20 Hz, so normally at most 0.025)."""
-    max_lidar_points_per_frame: int = 0
-    """Randomly thin each sweep to at most this many points (fixed seed per sweep); 0 keeps all."""
     max_track_gap: float = 0.35
-    """Sweeps inside a track's annotated span but unannotated (occlusions) get poses interpolated when the annotations around them are at most this many seconds apart; 0 interpolates nothing."""
-    stationary_threshold: float = 0.5
-    """Tracks whose box centre stays within this distance (m) of its first position over the loaded frames are marked stationary."""
+    """Sweeps inside a track's annotated span but unannotated (occlusions) get poses interpolated when the annotations around them are at most this many seconds apart (cuboids come at 10 Hz); 0 interpolates nothing."""
 
 
 class Argoverse2Dataparser(Dataparser):
@@ -74,11 +60,8 @@ class Argoverse2Dataparser(Dataparser):
     def parse(self) -> SceneData:
         cfg = self.config
         root = Path(cfg.data)
+        cfg.check()
         self._check_root(root)
-        if not cfg.scale > 0:
-            raise Av2LogError(f"scale: {cfg.scale}, expected a positive number")
-        if cfg.max_lidar_points_per_frame < 0:
-            raise Av2LogError(f"max_lidar_points_per_frame: {cfg.max_lidar_points_per_frame}, expected >= 0")
 
         sweep_ns, sweep_paths = av2.sweep_files(root)
         frames = frame_range(cfg.start_frame, cfg.end_frame, len(sweep_ns), str(root / "sensors" / "lidar"))
@@ -101,20 +84,9 @@ class Argoverse2Dataparser(Dataparser):
         ann = av2.read_annotations(root)  # None in the AV2 test split: no actors
         tracks = [] if ann is None else load_tracks(ann, root / "annotations.feather", frame_ns, ego, world,
                                                     cfg.max_track_gap, cfg.stationary_threshold)
-        train, test = holdout_split(len(frame_ns), cfg.holdout_every)
-        scene = SceneData(
-            name=f"av2_{root.resolve().name}",
-            cameras=cameras,
-            frame_timestamps=frame_ns * 1e-9,
-            source_frames=np.arange(frames.start, frames.stop),
-            train_frames=train,
-            test_frames=test,
-            lidar=lidar,
-            tracks=tracks,
-            ego_poses=world[None] @ city_ego,
-            attribution=ATTRIBUTION,
-        )
-        return scene.validate()
+        return self.build_scene(f"av2_{root.resolve().name}", cameras, frame_ns * 1e-9,
+                                np.arange(frames.start, frames.stop), lidar=lidar, tracks=tracks,
+                                ego_poses=world[None] @ city_ego, attribution=ATTRIBUTION)
 
     # -- layout ------------------------------------------------------------------------------
     @staticmethod
@@ -140,8 +112,6 @@ class Argoverse2Dataparser(Dataparser):
             unknown = [n for n in cfg.cameras if n not in known]
             if unknown:
                 raise Av2LogError(f"cameras: {unknown} are not AV2 cameras; AV2 cameras: {list(known)}")
-            if len(set(cfg.cameras)) != len(cfg.cameras):
-                raise Av2LogError(f"cameras: {list(cfg.cameras)} lists a camera twice")
             missing = [n for n in cfg.cameras if n not in present]
             if missing:
                 raise Av2LogError(f"{cam_dir / missing[0]}: missing camera folder (no images of {missing[0]}); "
@@ -180,15 +150,10 @@ class Argoverse2Dataparser(Dataparser):
         if size != (intr.width, intr.height):
             raise Av2LogError(f"{chosen[0]}: image is {size[0]}x{size[1]} but {calib / 'intrinsics.feather'} gives "
                               f"{name} width_px x height_px = {intr.width}x{intr.height}")
-        w_out, h_out = max(1, round(intr.width * cfg.scale)), max(1, round(intr.height * cfg.scale))
         cam_ns = image_ns[pick]
-        return CameraSequence(
-            name=name,
-            width=w_out,
-            height=h_out,
-            intrinsics=intr.K(w_out, h_out),
+        return loaded_camera(  # AV2 centres pixels at integers (omnire_argoverse2.log.CameraIntrinsics)
+            name, chosen, intr.matrix, size, cfg.scale, "integer",
             cam_to_world=world[None] @ ego.at(cam_ns) @ cam_to_ego[None],  # (F, 4, 4) OpenCV camera-to-world
-            image_paths=chosen,
             timestamps=cam_ns * 1e-9,
             distortion=intr.distortion,
             extras={"timestamp_ns": cam_ns, "offset_from_sweep_s": offset * 1e-9},
@@ -206,17 +171,14 @@ def load_lidar(paths: list[Path], frame_ns: np.ndarray, ego_to_world: np.ndarray
     """
     points = []
     for path, ts, M in zip(paths, frame_ns, ego_to_world):
-        xyz = av2.read_sweep(path, xyz_only=True).xyz  # (N, 3) ego frame
-        if 0 < max_points < len(xyz):
-            rng = np.random.default_rng((_LIDAR_SEED, int(ts)))  # same sweep, same thinning in any range
-            xyz = xyz[np.sort(rng.choice(len(xyz), max_points, replace=False))]
+        xyz = thin_points(av2.read_sweep(path, xyz_only=True).xyz, max_points, ts)  # (N, 3) ego frame
         points.append((xyz @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
     origins = (ego_to_world @ lidar_to_ego[None])[:, :3, 3]  # (F, 3)
     return LidarSweeps(points=points, origins=origins)
 
 
 def load_tracks(ann: av2.Annotations, path: Path, frame_ns: np.ndarray, ego: av2.EgoPoses, world: np.ndarray,
-                max_track_gap: float = 0.35, stationary_threshold: float = 0.5) -> list[ActorTrack]:
+                max_track_gap: float = 0.35, stationary_threshold: float = STATIONARY_THRESHOLD) -> list[ActorTrack]:
     """Cuboid annotations -> one :class:`ActorTrack` per track uuid present in the frames.
 
     Args:
@@ -225,8 +187,8 @@ def load_tracks(ann: av2.Annotations, path: Path, frame_ns: np.ndarray, ego: av2
         ego: the log's ego poses; world: (4, 4) city -> omnire world.
         max_track_gap: unannotated frames inside a track's span are interpolated when the
             annotations around them are at most this many seconds apart.
-        stationary_threshold: metres; tracks whose centre stays this close to its first
-            position are marked stationary.
+        stationary_threshold: metres of net motion below which a track is stationary
+            (``omnire.api.is_stationary``).
     Poses are box-to-world at the frame times; ``extras["annotated"]`` (F,) marks frames
     with a cuboid of that sweep, ``extras["num_interior_pts"]`` (F,) its LiDAR count (-1 elsewhere).
     """
@@ -247,29 +209,15 @@ def load_tracks(ann: av2.Annotations, path: Path, frame_ns: np.ndarray, ego: av2
                               f"{int(ts[np.flatnonzero(np.diff(ts) == 0)[0]])}")
         exact = np.isin(frame_ns, ts)
         times = (ts - frame_ns[0]).astype(np.float64) * 1e-9
-        poses, present = interpolate_track(times, box_to_world[rows], np.ones(len(rows), bool), query,
-                                           max_gap=max(max_track_gap, 0.0))
-        present |= exact
+        poses, present = resample_track(times, box_to_world[rows], query, max_track_gap)
         if not present.any():
             continue
-        # Unspecified rows (absent frames): hold the nearest present pose, never NaN.
-        idx = np.flatnonzero(present)
-        poses = poses[idx[np.abs(np.arange(F)[:, None] - idx[None]).argmin(1)]]
-        labels, counts = np.unique(ann.category[rows], return_counts=True)
-        label = str(labels[np.argmax(counts)])
+        label = majority_label(ann.category[rows])
         interior = np.full(F, -1, np.int64)
         interior[exact] = ann.num_interior_pts[rows][np.searchsorted(ts, frame_ns[exact])]
-        centres = poses[present, :3, 3]
-        tracks.append(ActorTrack(
-            track_id=str(uuid),
-            class_name=label,
-            category=av2.category_of(label),
-            poses=poses,
-            size=ann.size[rows].max(axis=0),
-            present=present,
-            stationary=bool(np.linalg.norm(centres - centres[0], axis=1).max() < stationary_threshold),
-            extras={"annotated": exact, "num_interior_pts": interior},
-        ))
+        stationary = is_stationary(poses[present, :3, 3], stationary_threshold)
+        tracks.append(ActorTrack(str(uuid), label, av2.category_of(label), poses, ann.size[rows].max(axis=0), present,
+                                 stationary, extras={"annotated": exact, "num_interior_pts": interior}))
     return tracks
 
 

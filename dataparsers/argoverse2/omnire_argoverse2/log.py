@@ -239,15 +239,12 @@ class CameraIntrinsics:
     width: int
     height: int
 
-    def K(self, width: int, height: int) -> np.ndarray:
-        """(3, 3) K for images resized to ``width`` x ``height``, pixel centres at +0.5.
-
-        AV2 states pixel centres at integers (av2-api accepts projections in [0, W-1]), so
-        the principal point moves by +0.5 before the per-axis scaling."""
-        sx, sy = width / self.width, height / self.height
-        return np.array([[self.fx * sx, 0.0, (self.cx + 0.5) * sx],
-                         [0.0, self.fy * sy, (self.cy + 0.5) * sy],
-                         [0.0, 0.0, 1.0]])
+    @property
+    def matrix(self) -> np.ndarray:
+        """(3, 3) K of the file, pixel centres at integers: AV2 states them there (av2-api
+        accepts projections in [0, W-1]), so readers move the principal point by +0.5 px
+        (``omnire.api.loaded_intrinsics(..., "integer")``)."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @property
     def distortion(self) -> np.ndarray:

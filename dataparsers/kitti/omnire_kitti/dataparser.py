@@ -44,20 +44,9 @@ from typing import Literal, Optional, Type
 import numpy as np
 
 from omnire.api import (
-    image_size,
-    ActorTrack,
-    axis_rotation,
-    CameraSequence,
-    ConfigError,
-    Dataparser,
-    LidarSweeps,
-    LogDataparserConfig,
-    SceneData,
-    SceneDataError,
-    first_pose_world,
-    frame_range,
-    holdout_split,
-    interpolate_track,
+    ActorTrack, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap, SceneData,
+    SceneDataError, axis_rotation, first_pose_world, frame_range, image_size, is_stationary, loaded_camera,
+    majority_label, require_files, resample_track, thin_points,
 )
 
 CAMERAS = ("image_02", "image_03")
@@ -77,7 +66,6 @@ _CALIB_KEYS = {
     "R_rect": ("R_rect", "R0_rect"), "Tr_velo_cam": ("Tr_velo_cam", "Tr_velo_to_cam"),
     "Tr_imu_velo": ("Tr_imu_velo", "Tr_imu_to_velo"),
 }
-_LIDAR_SEED = 0
 _VEHICLE = frozenset({"Car", "Van", "Truck", "Tram"})
 _HUMAN = frozenset({"Pedestrian", "Person_sitting", "Person"})
 # Camera axes (x right, y down, z forward) of the KITTI object frame -> omnire box axes
@@ -260,34 +248,18 @@ class KittiDataparser(Dataparser):
                    for name in self._camera_names(split, seq)]
         lidar = self._lidar(split, seq, frames, world[None] @ imu_poses[frames] @ imu_from_velo) if cfg.load_lidar else None
         tracks = self._tracks(split / "label_02" / f"{seq}.txt", n_log, frames, times, rect_to_world)
-        train, test = holdout_split(len(frames), cfg.holdout_every)
-        return SceneData(
-            name=f"kitti_{split.name}_{seq}",
-            cameras=cameras,
-            frame_timestamps=times,
-            source_frames=frames,
-            train_frames=train,
-            test_frames=test,
-            lidar=lidar,
-            tracks=tracks,
-            ego_poses=world[None] @ imu_poses[frames],
-            attribution=ATTRIBUTION,
-        ).validate()
+        return self.build_scene(f"kitti_{split.name}_{seq}", cameras, times, frames, lidar=lidar, tracks=tracks,
+                                ego_poses=world[None] @ imu_poses[frames], attribution=ATTRIBUTION)
 
     # -- options -------------------------------------------------------------------------------
     def _check_options(self) -> None:
         cfg = self.config
-        if not cfg.scale > 0:
-            raise ConfigError(f"scale: {cfg.scale}, expected a positive number")
+        cfg.check()
         if not cfg.fps > 0:
             raise ConfigError(f"fps: {cfg.fps}, expected a positive frame rate (KITTI records at 10 Hz)")
-        if cfg.max_lidar_points_per_frame < 0:
-            raise ConfigError(f"max_lidar_points_per_frame: {cfg.max_lidar_points_per_frame}, expected >= 0 (0 keeps all)")
         bad = [c for c in cfg.cameras if c not in CAMERAS]
         if bad:
             raise ConfigError(f"cameras: {bad} are not KITTI colour cameras; choose from {list(CAMERAS)}")
-        if len(set(cfg.cameras)) != len(cfg.cameras):
-            raise ConfigError(f"cameras: {list(cfg.cameras)} lists a camera twice")
 
     def _split_dir(self) -> Path:
         data = Path(self.config.data)
@@ -330,26 +302,11 @@ class KittiDataparser(Dataparser):
         cam_to_rect = np.eye(4)
         cam_to_rect[:3, 3] = -t  # camera centre in rectified camera-0 coordinates
         paths = [split / name / seq / f"{f:06d}.png" for f in frames]
-        missing = [p for p in paths if not p.is_file()]
-        if missing:
-            more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
-            raise KittiFileMissing(f"{missing[0]}: missing image of {name}{more}")
-        width, height = image_size(paths[0])
-        w_out, h_out = max(1, round(width * self.config.scale)), max(1, round(height * self.config.scale))
-        sx, sy = w_out / width, h_out / height
-        K = np.array([[K0[0, 0] * sx, K0[0, 1] * sx, (K0[0, 2] + 0.5) * sx],  # integer pixel centres -> +0.5
-                      [0.0, K0[1, 1] * sy, (K0[1, 2] + 0.5) * sy],
-                      [0.0, 0.0, 1.0]])
-        return CameraSequence(
-            name=name,
-            width=w_out,
-            height=h_out,
-            intrinsics=K,
-            cam_to_world=rect_to_world @ cam_to_rect,  # rectified axes are OpenCV's
-            image_paths=paths,
-            timestamps=times.copy(),  # triggered by the Velodyne: the frame time
-            distortion=None,  # rectified images
-        )
+        require_files(paths, f"image of {name}", KittiFileMissing)
+        return loaded_camera(name, paths, K0, image_size(paths[0]), self.config.scale, "integer",
+                             cam_to_world=rect_to_world @ cam_to_rect,  # rectified axes are OpenCV's
+                             timestamps=times.copy(),  # triggered by the Velodyne: the frame time
+                             distortion=None)  # rectified images
 
     def _lidar(self, split: Path, seq: str, frames: np.ndarray, velo_to_world: np.ndarray) -> Optional[LidarSweeps]:
         cfg = self.config
@@ -370,10 +327,7 @@ class KittiDataparser(Dataparser):
             xyz = np.fromfile(path, dtype="<f4").reshape(-1, 4)[:, :3].astype(np.float64)  # (N, 3) Velodyne frame
             if not np.isfinite(xyz).all():
                 raise KittiDataError(f"{path}: non-finite x, y, z values")
-            n_max = cfg.max_lidar_points_per_frame
-            if 0 < n_max < len(xyz):
-                gen = np.random.default_rng((_LIDAR_SEED, int(f)))  # same thinning in any frame range
-                xyz = xyz[np.sort(gen.choice(len(xyz), n_max, replace=False))]
+            xyz = thin_points(xyz, cfg.max_lidar_points_per_frame, f)  # keyed by the frame of the log
             M = velo_to_world[j]
             points.append((xyz @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
             origins[j] = M[:3, 3]
@@ -392,23 +346,12 @@ class KittiDataparser(Dataparser):
                 continue
             idx = np.array([local[r[0]] for r in rows])
             boxes = np.stack([rect_to_world[i] @ r[2] for i, r in zip(idx, rows)])  # (K, 4, 4) box -> world
-            poses, present = interpolate_track(times[idx], boxes, np.ones(len(idx), bool), times,
-                                               max_gap=cfg.max_box_gap)
-            first = int(np.flatnonzero(present)[0])
-            poses[~present] = poses[first]  # absent rows are unspecified: keep them finite
-            kinds = [r[1] for r in rows]
-            label = max(set(kinds), key=kinds.count)
-            centres = boxes[:, :3, 3]
-            tracks.append(ActorTrack(
-                track_id=tid,
-                class_name=label,
-                category=category_of(label),
-                poses=poses,
-                size=np.max([r[3] for r in rows], axis=0),
-                present=present,
-                stationary=bool(np.linalg.norm(centres - centres[0], axis=1).max() < cfg.stationary_threshold),
-                extras={"labelled_frames": idx},
-            ))
+            poses, present = resample_track(times[idx], boxes, times, cfg.max_track_gap)
+            label = majority_label([r[1] for r in rows])
+            size = np.max([r[3] for r in rows], axis=0)
+            stationary = is_stationary(poses[present, :3, 3], cfg.stationary_threshold)
+            tracks.append(ActorTrack(tid, label, category_of(label), poses, size, present, stationary,
+                                     extras={"labelled_frames": idx}))
         return tracks
 
 
@@ -428,9 +371,5 @@ class KittiConfig(LogDataparserConfig):
     """Cameras to load: image_02 (left colour), image_03 (right colour); empty loads those present."""
     fps: float = 10.0
     """Frame rate of the sequence (KITTI: 10 Hz); timestamps are frame / fps."""
-    max_box_gap: float = 0.5
-    """Interpolate a track across unlabelled frames spanning at most this many seconds; longer gaps leave it absent."""
-    max_lidar_points_per_frame: int = 0
-    """Randomly thin each scan to at most this many points (seeded by the frame); 0 keeps all (~120k per scan)."""
-    stationary_threshold: float = 0.2
-    """Tracks whose labelled box centres stay within this distance (m) of the first are marked stationary."""
+    max_track_gap: MaxTrackGap = 0.5
+    """Interpolate a track across unlabelled frames when the labels around them are at most this many seconds apart (labels come at 10 Hz); across longer gaps the actor is absent. 0 keeps the labelled frames only."""

@@ -27,12 +27,11 @@ Written (``<output>/training/``, sequence 0000), as the tracking release has it:
 """
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
 
-from omnire.api import atomic_write_bytes, atomic_write_text
+from omnire.api import atomic_write_bytes, atomic_write_text, image_size, read_image, write_png
 from omnire_kitti.dataparser import EARTH_RADIUS
 from omnire.api import axis_rotation as rot_axis
 from omnire_synthetic.source import SyntheticSource, rigid
@@ -94,8 +93,9 @@ def write_kitti(source: Path, output: Path) -> dict:
     atomic_write_text(split / "oxts" / f"{SEQUENCE}.txt", _oxts_lines(mercator_from_gen[None] @ src.ego, src.times))
 
     for f in range(F):
-        img = _read_rgb(Path(cam.image_paths[f]))
-        _write_png(split / "image_02" / SEQUENCE / f"{f:06d}.png", rectify(img, K_src, K_rect, R_src_from_rect))
+        path = Path(cam.image_paths[f])
+        img = read_image(path, *image_size(path))  # (H, W, 3) uint8
+        write_png(split / "image_02" / SEQUENCE / f"{f:06d}.png", rectify(img, K_src, K_rect, R_src_from_rect) / 255.0)
         velo_to_gen = src.ego[f] @ velo_to_ego
         p = (src.points(f) - velo_to_gen[:3, 3]) @ velo_to_gen[:3, :3]  # (N, 3) Velodyne frame
         refl = src.intensity[f] if src.intensity[f] is not None else np.zeros(len(p))
@@ -159,34 +159,6 @@ def _zoom_to_fill(K: np.ndarray, R_src_from_dst: np.ndarray, W: int, H: int) -> 
         mid = 0.5 * (lo + hi)
         lo, hi = (lo, mid) if inside(mid) else (mid, hi)
     return hi
-
-
-def _read_rgb(path: Path) -> np.ndarray:
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise OSError(f"{path}: cannot open image ({oiio.geterror()})")
-    try:
-        spec = inp.spec()
-        px = inp.read_image(0, 0, 0, spec.nchannels, oiio.UINT8)
-    finally:
-        inp.close()
-    return np.asarray(px, dtype=np.uint8).reshape(spec.height, spec.width, spec.nchannels)[:, :, :3]
-
-
-def _write_png(path: Path, img: np.ndarray) -> None:
-    import OpenImageIO as oiio
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    out = oiio.ImageOutput.create(str(tmp))
-    h, w, c = img.shape
-    if out is None or not out.open(str(tmp), oiio.ImageSpec(w, h, c, "uint8")) or not out.write_image(
-            np.ascontiguousarray(img)):
-        raise OSError(f"{tmp}: cannot write PNG ({oiio.geterror()})")
-    out.close()
-    shutil.move(str(tmp), str(path))
 
 
 # ----------------------------------------------------------------------------- oxts

@@ -232,7 +232,7 @@ def test_label_gaps_interpolated(synth, tmp_path):
     assert np.allclose(mid[:3, 3], (full[a].poses[3, :3, 3] + full[a].poses[5, :3, 3]) / 2, atol=1e-9)
     assert np.linalg.norm(mid[:3, 3] - full[a].poses[4, :3, 3]) < 0.05  # the true pose, nearly
     assert s[b].present.tolist() == [True] * 3 + [False] * 6 + [True]
-    wide = {t.track_id: t for t in parse(root, load_lidar=False, max_box_gap=0.8).tracks}
+    wide = {t.track_id: t for t in parse(root, load_lidar=False, max_track_gap=0.8).tracks}
     assert wide[b].present.all()
 
 

@@ -15,10 +15,12 @@ Facts used (nuscenes-devkit ``docs/schema_nuscenes.md`` and ``utils/data_classes
 - Cameras: the calibrated camera frame is OpenCV's (x right, y down, z forward), so
   cam_to_world = world @ ego_pose(image) @ calibrated_sensor(camera). "All camera images come
   undistorted and rectified": no distortion coefficients. ``camera_intrinsic`` is a 3x3 K.
-  nuScenes does not state its pixel origin; the devkit draws projected points with
-  ``ax.imshow(image)`` + ``ax.scatter(K-projected u, v)`` (``render_pointcloud_in_image``),
-  and imshow puts pixel centres at integer coordinates, so K is read in that (OpenCV)
-  convention and shifted by +0.5 px to omnire's.
+  The schema does not state the pixel origin; the devkit's geometry treats the image as the
+  rectangle [0, W] x [0, H] (``box_in_image`` keeps 0 < u < W, ``map_pointcloud_to_image``
+  keeps a 1 px margin on each side, the 2D-box export clips to ``box(0, 0, 1600, 900)``),
+  which centres pixel (i, j) at (i + 0.5, j + 0.5), omnire's convention: K is used as is
+  (the processed reader reads the reference's copy of the same K the same way; see
+  docs/datasets.md, nuScenes).
 - LIDAR_TOP ``.pcd.bin``: float32 rows x y z intensity ring, in the LiDAR frame (x right,
   y forward, z up on the car; its calibrated_sensor says so).
 - Boxes (``sample_annotation``, keyframes only, 2 Hz): centre and rotation in the global
@@ -43,18 +45,8 @@ from typing import Optional, Type
 import numpy as np
 
 from omnire.api import (
-    image_size,
-    ActorTrack,
-    CameraSequence,
-    ConfigError,
-    Dataparser,
-    LidarSweeps,
-    LogDataparserConfig,
-    SceneData,
-    first_pose_world,
-    frame_range,
-    holdout_split,
-    interpolate_track,
+    ActorTrack, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap, SceneData,
+    first_pose_world, frame_range, image_size, is_stationary, loaded_camera, resample_track, thin_points,
 )
 from omnire_nuscenes.tables import (
     NuScenesDataError,
@@ -75,7 +67,6 @@ ATTRIBUTION = (
     '"nuScenes: A multimodal dataset for autonomous driving", Caesar et al., CVPR 2020; nuScenes by Motional, '
     "CC BY-NC-SA 4.0 (non-commercial use; nuScenes Terms of Use)."
 )
-_LIDAR_SEED = 0
 
 
 def category_of(name: str) -> str:
@@ -179,35 +170,18 @@ class NuScenesDataparser(Dataparser):
         cams = [self._camera(root, tables, name, cam_sds[name], calibs, ego_of, calib_of, world) for name in cameras]
         lidar = self._lidar(root, frame_sds, ego_frames, calib_of, world) if cfg.load_lidar else None
         tracks = self._tracks(tables, samples, key_t, frame_us, world)
-        F = len(frame_sds)
-        train, test = holdout_split(F, cfg.holdout_every)
-        return SceneData(
-            name=f"nuscenes_{scene['name']}",
-            cameras=cams,
-            frame_timestamps=frame_us * 1e-6,
-            source_frames=np.arange(rng.start, rng.stop),
-            train_frames=train,
-            test_frames=test,
-            lidar=lidar,
-            tracks=tracks,
-            ego_poses=world[None] @ ego_frames,
-            attribution=ATTRIBUTION,
-        ).validate()
+        return self.build_scene(f"nuscenes_{scene['name']}", cams, frame_us * 1e-6, np.arange(rng.start, rng.stop),
+                                lidar=lidar, tracks=tracks, ego_poses=world[None] @ ego_frames, attribution=ATTRIBUTION)
 
     # -- options and tables -------------------------------------------------------------------
     def _check_options(self) -> None:
         cfg = self.config
-        if not cfg.scale > 0:
-            raise ConfigError(f"scale: {cfg.scale}, expected a positive number")
+        cfg.check()
         if cfg.interpolate_frames < 0:
             raise ConfigError(f"interpolate_frames: {cfg.interpolate_frames}, expected >= 0 (0 = keyframes only)")
-        if cfg.max_lidar_points_per_frame < 0:
-            raise ConfigError(f"max_lidar_points_per_frame: {cfg.max_lidar_points_per_frame}, expected >= 0 (0 keeps all)")
         bad = [c for c in cfg.cameras if c not in CAMERAS]
         if bad:
             raise ConfigError(f"cameras: {bad} are not nuScenes cameras; choose from {list(CAMERAS)}")
-        if len(set(cfg.cameras)) != len(cfg.cameras):
-            raise ConfigError(f"cameras: {list(cfg.cameras)} lists a camera twice")
 
     def _locate(self) -> tuple[Path, Path]:
         """(data root holding samples/ and sweeps/, folder of the JSON tables)."""
@@ -301,28 +275,14 @@ class NuScenesDataparser(Dataparser):
         if (w_disk, h_disk) != (width, height):
             raise NuScenesDataError(f"{paths[0]}: image is {w_disk}x{h_disk}, but sample_data {sds[0]['token']!r} "
                                     f"fields 'width', 'height' say {width}x{height}")
-        w_out, h_out = max(1, round(width * self.config.scale)), max(1, round(height * self.config.scale))
-        sx, sy = w_out / width, h_out / height
-        # K is in the integer-pixel-centre convention (module docstring): +0.5 px, then scale.
-        K = np.array([[K0[0, 0] * sx, K0[0, 1] * sx, (K0[0, 2] + 0.5) * sx],
-                      [0.0, K0[1, 1] * sy, (K0[1, 2] + 0.5) * sy],
-                      [0.0, 0.0, 1.0]])
         c2w = np.stack([world @ ego_of(r) @ calib_of(r) for r in sds])  # (F, 4, 4) OpenCV cam -> world
-        return CameraSequence(
-            name=name,
-            width=w_out,
-            height=h_out,
-            intrinsics=K,
-            cam_to_world=c2w,
-            image_paths=paths,
-            timestamps=np.array([int(r["timestamp"]) for r in sds], dtype=np.int64) * 1e-6,
-            distortion=None,  # nuScenes images are undistorted (schema: calibrated_sensor)
-            ego_mask_path=self._ego_mask(name),
-            extras={
-                "sample_data_token": np.array([str(r["token"]) for r in sds]),
-                "is_key_frame": np.array([bool(r["is_key_frame"]) for r in sds]),
-            },
-        )
+        extras = {"sample_data_token": np.array([str(r["token"]) for r in sds]),
+                  "is_key_frame": np.array([bool(r["is_key_frame"]) for r in sds])}
+        # Pixel centres at +0.5 already (module docstring): K is only scaled.
+        return loaded_camera(name, paths, K0, (width, height), self.config.scale, "half", cam_to_world=c2w,
+                             timestamps=np.array([int(r["timestamp"]) for r in sds], dtype=np.int64) * 1e-6,
+                             distortion=None,  # nuScenes images are undistorted (schema: calibrated_sensor)
+                             ego_mask_path=self._ego_mask(name), extras=extras)
 
     def _ego_mask(self, name: str) -> Optional[Path]:
         folder = self.config.ego_mask_dir
@@ -352,11 +312,7 @@ class NuScenesDataparser(Dataparser):
                 raise NuScenesDataError(f"{path}: non-finite x, y, z values (sample_data {sd['token']!r})")
             if cfg.lidar_min_distance > 0:
                 xyz = xyz[np.hypot(xyz[:, 0], xyz[:, 1]) >= cfg.lidar_min_distance]
-            n_max = cfg.max_lidar_points_per_frame
-            if 0 < n_max < len(xyz):
-                # Seeded by the sweep timestamp: a frame thins the same way in any frame range.
-                gen = np.random.default_rng((_LIDAR_SEED, int(sd["timestamp"])))
-                xyz = xyz[np.sort(gen.choice(len(xyz), n_max, replace=False))]
+            xyz = thin_points(xyz, cfg.max_lidar_points_per_frame, sd["timestamp"])  # keyed by the sweep
             M = world @ ego_frames[j] @ calib_of(sd)  # (4, 4) LiDAR -> world
             points.append((xyz @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
             origins[j] = M[:3, 3]
@@ -393,26 +349,15 @@ class NuScenesDataparser(Dataparser):
                 raise NuScenesDataError(f"{tables / 'sample_annotation.json'}: instance {inst_token!r} has a box 'size' "
                                         "with a non-positive entry; expected width, length, height in metres")
             boxes = world[None] @ boxes
-            poses, present = interpolate_track(t, boxes, np.ones(len(t), bool), frame_us.astype(np.float64),
-                                               max_gap=cfg.max_box_gap * 1e6)
+            poses, present = resample_track(t, boxes, frame_us.astype(np.float64), cfg.max_track_gap * 1e6)
             if not present.any():
                 continue
-            first = int(np.flatnonzero(present)[0])
-            poses[~present] = poses[first]  # absent rows are unspecified: keep them finite
-            centres = boxes[:, :3, 3]
-            spread = np.linalg.norm(centres - centres[0], axis=1).max()
             name = str(cat["name"])
-            tracks.append(ActorTrack(
-                track_id=inst_token,
-                class_name=name,
-                category=category_of(name),
-                poses=poses,
-                size=wlh[:, [1, 0, 2]].max(axis=0),  # (width, length, height) -> (length, width, height)
-                present=present,
-                stationary=bool(spread < cfg.stationary_threshold),
-                extras={"annotation_times": t * 1e-6, "annotation_poses": boxes,
-                        "annotation_tokens": [a["token"] for a in rows]},
-            ))
+            size = wlh[:, [1, 0, 2]].max(axis=0)  # (width, length, height) -> (length, width, height)
+            stationary = is_stationary(poses[present, :3, 3], cfg.stationary_threshold)
+            tracks.append(ActorTrack(inst_token, name, category_of(name), poses, size, present, stationary, extras={
+                "annotation_times": t * 1e-6, "annotation_poses": boxes,
+                "annotation_tokens": [a["token"] for a in rows]}))
         return tracks
 
 
@@ -432,13 +377,9 @@ class NuScenesConfig(LogDataparserConfig):
     """Cameras to load: any of CAM_FRONT, CAM_FRONT_LEFT, CAM_FRONT_RIGHT, CAM_BACK_LEFT, CAM_BACK_RIGHT, CAM_BACK; empty loads all six (those present)."""
     interpolate_frames: int = 4
     """Frames between two annotated keyframes (2 Hz): 4 gives the reference's 10 Hz, 0 loads keyframes only."""
-    max_box_gap: float = 1.0
-    """Interpolate a box between annotations at most this many seconds apart (keyframes are 0.5 s apart); across longer gaps the actor is absent."""
+    max_track_gap: MaxTrackGap = 1.0
+    """Interpolate a box between annotations at most this many seconds apart (keyframes are 0.5 s apart, so 1.0 bridges one missed keyframe); across longer gaps the actor is absent."""
     lidar_min_distance: float = 1.0
     """Drop LiDAR returns within this horizontal distance (m) of the sensor (the ego car's roof), as the devkit does; 0 keeps all."""
-    max_lidar_points_per_frame: int = 0
-    """Randomly thin each sweep to at most this many points (seeded by the sweep); 0 keeps all."""
-    stationary_threshold: float = 0.2
-    """Tracks whose annotated box centres stay within this distance (m) of the first are marked stationary."""
     ego_mask_dir: Optional[Path] = None
     """Optional folder of <CHANNEL>.png masks (non-zero = the recording car, e.g. its trunk in CAM_BACK), left out of losses and metrics; cameras without a file get none."""

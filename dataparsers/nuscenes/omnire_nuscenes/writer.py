@@ -20,8 +20,8 @@ What is written (``<output>/``), as a nuScenes release has it (schema: nuscenes-
   ego_pose (token = sample_data token, as in nuScenes), z = 0 and yaw only, in a global map
   frame = generator world rotated and shifted.
 - Cameras: synthetic cameras 0..5 are CAM_FRONT, CAM_FRONT_LEFT, CAM_FRONT_RIGHT,
-  CAM_BACK_LEFT, CAM_BACK_RIGHT, CAM_BACK; JPEG bytes copied unchanged; camera_intrinsic in
-  the integer-pixel-centre convention (cx, cy = ours - 0.5).
+  CAM_BACK_LEFT, CAM_BACK_RIGHT, CAM_BACK; JPEG bytes copied unchanged; camera_intrinsic is
+  omnire's K unchanged (nuScenes centres pixels at +0.5 as omnire does; docs/datasets.md).
 - LIDAR_TOP: axes x right, y forward, z up on the car (plus a 0.2 degree mounting tilt), at
   the synthetic sensor's position; points float32 x y z intensity (0-255) ring (beam index).
 - Annotations on keyframes: global centre, rotation (x along the heading), size (width,
@@ -119,10 +119,7 @@ def write_nuscenes(source: Path, output: Path, camera_delays: Optional[Sequence[
     lidar_to_ego = rigid(LIDAR_AXES, src.lidar_to_ego[:3, 3])
     sensors = [(LIDAR, "lidar", lidar_to_ego, [])]
     for c, ch in enumerate(channels):
-        K = src.K[c].copy()
-        K[0, 2] -= 0.5  # nuScenes K: pixel centres at integers
-        K[1, 2] -= 0.5
-        sensors.append((ch, "camera", src.cam_to_ego[c], K.tolist()))
+        sensors.append((ch, "camera", src.cam_to_ego[c], src.K[c].tolist()))
     calib_tok = {}
     for ch, modality, T, K in sensors:
         sen_tok, calib_tok[ch] = token("sensor", ch), token("calibrated_sensor", LOGFILE, ch)

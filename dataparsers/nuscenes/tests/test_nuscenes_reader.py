@@ -118,6 +118,46 @@ def test_frames_cameras_and_timestamps(synth):
         assert mine.extras["is_key_frame"].tolist() == [f in (0, 5, 10) for f in range(FRAMES)]
 
 
+def test_hand_written_calibration_gives_the_same_camera_in_both_readers(synth, tmp_path):
+    """A devkit calibrated_sensor table written by hand: camera_intrinsic is used as is (pixel
+    centres at +0.5, docs/datasets.md) and scaled; the processed reader, given the same four
+    numbers in intrinsics/0.txt as the reference's nuScenes preprocessing writes them, gives
+    the same K. Expected values computed by hand."""
+    from omnire_processed.reader import ProcessedDataparser, ProcessedDataparserConfig
+
+    root = small_copy(synth, tmp_path)
+    cam_front = [[40.0, 0.0, 24.5], [0.0, 44.0, 15.75], [0.0, 0.0, 1.0]]
+    forward = [0.5, -0.5, 0.5, -0.5]  # w x y z: camera x = -ego y, y = -ego z, z = ego x
+    rows = [{"token": token("calibrated_sensor", LOGFILE, "LIDAR_TOP"), "sensor_token": token("sensor", "LIDAR_TOP"),
+             "translation": [0.9, 0.0, 1.8], "rotation": [1.0, 0.0, 0.0, 0.0], "camera_intrinsic": []}]
+    for ch in CAMERAS:
+        rows.append({"token": token("calibrated_sensor", LOGFILE, ch), "sensor_token": token("sensor", ch),
+                     "translation": [1.5, 0.0, 1.6], "rotation": forward,
+                     "camera_intrinsic": cam_front if ch == "CAM_FRONT" else [[30.0, 0.0, 24.0], [0.0, 30.0, 16.0],
+                                                                               [0.0, 0.0, 1.0]]})
+    (root / VERSION / "calibrated_sensor.json").write_text(json.dumps(rows))
+    s = NuScenesConfig(data=root, scale=0.5, load_lidar=False).setup().parse()
+    front = s.cameras[0]
+    assert front.name == "CAM_FRONT" and (front.width, front.height) == (24, 16)  # 48x32 at 0.5
+    expected = np.array([[20.0, 0.0, 12.25], [0.0, 22.0, 7.875], [0.0, 0.0, 1.0]])  # (fx, fy, cx, cy) / 2
+    assert np.array_equal(front.intrinsics, expected)
+    # The camera's pose in the ego frame of frame 0 (synchronous synthetic sensors): the row's.
+    c2w = np.linalg.inv(s.ego_poses[0]) @ front.cam_to_world[0]
+    assert np.allclose(c2w[:3, 3], [1.5, 0.0, 1.6], atol=1e-12)
+    assert np.allclose(c2w[:3, :3], [[0, 0, 1], [-1, 0, 0], [0, -1, 0]], atol=1e-12)
+
+    proc = tmp_path / "processed"
+    shutil.copytree(synth.proc, proc)
+    (proc / "intrinsics" / "0.txt").write_text("40 44 24.5 15.75 0 0 0 0 0\n")
+    reader = ProcessedDataparser(ProcessedDataparserConfig(data=proc, source="nuscenes", cameras=(0,), scale=0.5,
+                                                           load_lidar=False, load_human_poses=False))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        theirs = reader.parse().cameras[0]
+    assert theirs.name == "CAM_FRONT" and reader.pixel_centres == "half"
+    assert np.array_equal(theirs.intrinsics, expected)
+
+
 def test_world_and_ego(synth):
     s, ego = synth.scene, synth.gt["ego_to_world"]
     assert np.allclose(s.ego_poses, np.linalg.inv(ego[0])[None] @ ego, atol=1e-9)
@@ -182,12 +222,12 @@ def test_annotation_gap(synth, tmp_path):
     full = [t for t in synth.scene.tracks if t.present.all()][0]
     middle = full.extras["annotation_tokens"][1]  # keyframe 5
     rewrite_table(root, "sample_annotation", lambda r: [a for a in r if a["token"] != middle])
-    s = {t.track_id: t for t in parse(root, load_lidar=False).tracks}  # gap 1.0 s <= max_box_gap
+    s = {t.track_id: t for t in parse(root, load_lidar=False).tracks}  # gap 1.0 s <= max_track_gap
     assert s[full.track_id].present.all()
     ends = full.extras["annotation_poses"][[0, 2]]
     expected = interpolate_poses(np.array([0.0, 1.0]), ends, np.arange(FRAMES) / 10)
     assert np.allclose(s[full.track_id].poses, expected, atol=1e-9)
-    s = {t.track_id: t for t in parse(root, load_lidar=False, max_box_gap=0.6).tracks}
+    s = {t.track_id: t for t in parse(root, load_lidar=False, max_track_gap=0.6).tracks}
     assert s[full.track_id].present.tolist() == [True] + [False] * 9 + [True]
 
 

@@ -50,6 +50,7 @@ from omnire.data.scene import (
 )
 from omnire.io import safe_pickle
 from omnire.api import image_size, MissingFileError, quat_to_rotmat, rot_z
+from omnire.api import hold_absent_poses, loaded_camera, require_files, thin_points
 
 CAMERAS = (
     "front_camera",
@@ -98,8 +99,6 @@ _CYCLIST = frozenset({"Bicycle", "Motorcycle", "Personal Mobility Device", "Moto
 _EGO_IN_LIDAR = np.array(
     [[0.0, -1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 )
-_LIDAR_SEED = 0
-"""Seed of the per-frame LiDAR thinning (combined with the source frame number)."""
 _CUBOID_COLUMNS = ("uuid", "label", "yaw", "position.x", "position.y", "position.z",
                    "dimensions.x", "dimensions.y", "dimensions.z")
 
@@ -309,11 +308,7 @@ def _tracks_from_cuboids(frames: list[pd.DataFrame], world: np.ndarray) -> list[
         present[frame_idx] = True
         poses = np.full((F, 4, 4), np.nan)
         poses[frame_idx] = box_to_world[idx]
-        # Absent frames are "unspecified" in the contract: hold the nearest earlier pose (the
-        # first one before the actor appears) so consumers never meet NaN by accident.
-        last = np.maximum.accumulate(np.where(present, np.arange(F), -1))
-        last[last < 0] = frame_idx.min()
-        poses = poses[last]
+        poses = hold_absent_poses(poses, present)  # never NaN where the actor is absent
         own = sub[sub["uuid"].astype(str) == tid]
         label = str((own if len(own) else sub)["label"].mode().iloc[0])
         stationary = bool(sub["stationary"].astype(bool).all()) if "stationary" in sub else False
@@ -383,6 +378,7 @@ class PandasetDataparser(Dataparser):
     # -- checks ---------------------------------------------------------------------------
     def _check_options(self, root: Path) -> None:
         cfg = self.config
+        cfg.check()
         on_disk = [c for c in CAMERAS if (root / "camera" / c).is_dir()]
         if not cfg.cameras:
             raise SceneDataError(f"cameras: empty; cameras in {root / 'camera'}: {on_disk}")
@@ -405,8 +401,6 @@ class PandasetDataparser(Dataparser):
                 f"lidar_sensors: {list(cfg.lidar_sensors)}; expected a non-empty subset of "
                 f"{ {k: v for k, v in LIDAR_SENSORS.items()} }"
             )
-        if not cfg.scale > 0:
-            raise SceneDataError(f"scale: {cfg.scale}, expected a positive number")
         if cfg.max_lidar_points_per_frame < 0:
             raise SceneDataError(
                 f"max_lidar_points_per_frame: {cfg.max_lidar_points_per_frame}, expected >= 0 (0 keeps all)"
@@ -445,28 +439,15 @@ class PandasetDataparser(Dataparser):
         times = _read_json_list(cam_dir / "timestamps.json", n_log, f"{name} timestamps (seconds)")
 
         paths = [_frame_file(cam_dir, int(f), ".jpg") for f in frames]
-        missing = [p for p in paths if not p.is_file()]
-        if missing:
-            more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
-            raise MissingFileError(f"{missing[0]}: missing image of camera {name}{more}")
-        width, height = image_size(paths[0])
-        # Loaded size: files scaled by `scale`, rounded; K scaled per axis by the exact ratio.
+        require_files(paths, f"image of camera {name}")
         # PandaSet's K maps to continuous image coordinates with pixel centres at +0.5 (its
         # devkit's projection keeps 0 < u < width, 0 < v < height), omnire's convention: no
         # shift, and resizing is a plain multiplication (the processed reader agrees).
-        w_out, h_out = max(1, round(width * self.config.scale)), max(1, round(height * self.config.scale))
-        sx, sy = w_out / width, h_out / height
-        K = np.array([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]])
-        return CameraSequence(
-            name=name,
-            width=w_out,
-            height=h_out,
-            intrinsics=K,
-            cam_to_world=world[None] @ poses[frames],  # (F, 4, 4) OpenCV camera-to-world
-            image_paths=paths,
-            ego_mask_path=EGO_MASKS.get(name),
-            timestamps=np.asarray(times, dtype=np.float64)[frames],
-        )
+        K0 = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        return loaded_camera(name, paths, K0, image_size(paths[0]), self.config.scale, "half",
+                             cam_to_world=world[None] @ poses[frames],  # (F, 4, 4) OpenCV camera-to-world
+                             ego_mask_path=EGO_MASKS.get(name),
+                             timestamps=np.asarray(times, dtype=np.float64)[frames])
 
     def _lidar(
         self, lidar_dir: Path, lidar_poses: np.ndarray, frames: np.ndarray, source_frames: np.ndarray, world: np.ndarray
@@ -485,11 +466,7 @@ class PandasetDataparser(Dataparser):
             xyz = table[["x", "y", "z"]].to_numpy(np.float64)  # (N, 3) PandaSet world
             if not use_all:
                 xyz = xyz[np.isin(table["d"].to_numpy(), list(cfg.lidar_sensors))]
-            n_max = cfg.max_lidar_points_per_frame
-            if 0 < n_max < len(xyz):
-                # Seeded by the source frame number: the same frame thins the same way in any range.
-                rng = np.random.default_rng((_LIDAR_SEED, int(src)))
-                xyz = xyz[np.sort(rng.choice(len(xyz), n_max, replace=False))]
+            xyz = thin_points(xyz, cfg.max_lidar_points_per_frame, src)  # keyed by the source frame number
             xyz = xyz @ world[:3, :3].T + world[:3, 3]
             if not np.isfinite(xyz).all():
                 raise SceneDataError(f"{path}: non-finite x, y, z values")

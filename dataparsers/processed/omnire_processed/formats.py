@@ -94,52 +94,72 @@ LIDAR_LAYOUTS: dict[str, LidarLayout] = {
 # category: like the reference implementation, rigid street furniture tracked as boxes
 # (cones, barrels, signs, trailers) goes there too. Cyclists and riders -> "cyclist";
 # other non-rigid actors (animals, strollers, wheelchairs) -> "other".
-CLASS_CATEGORIES: dict[str, dict[str, str]] = {
-    "waymo": {"Vehicle": "vehicle", "Pedestrian": "human", "Cyclist": "cyclist", "Sign": "other"},
+_CLASSES_BY_CATEGORY: dict[str, dict[str, tuple[str, ...]]] = {
+    "waymo": {
+        "vehicle": ("Vehicle",),
+        "human": ("Pedestrian",),
+        "cyclist": ("Cyclist",),
+        "other": ("Sign",),
+    },
     "nuscenes": {
-        "vehicle.bus.bendy": "vehicle", "vehicle.bus.rigid": "vehicle", "vehicle.car": "vehicle",
-        "vehicle.construction": "vehicle", "vehicle.emergency.ambulance": "vehicle",
-        "vehicle.emergency.police": "vehicle", "vehicle.motorcycle": "vehicle", "vehicle.trailer": "vehicle",
-        "vehicle.truck": "vehicle", "vehicle.bicycle": "cyclist",
-        "human.pedestrian.adult": "human", "human.pedestrian.child": "human",
-        "human.pedestrian.construction_worker": "human", "human.pedestrian.police_officer": "human",
-        "human.pedestrian.personal_mobility": "other", "human.pedestrian.stroller": "other",
-        "human.pedestrian.wheelchair": "other", "animal": "other",
-        "movable_object.barrier": "other", "movable_object.debris": "other",
-        "movable_object.pushable_pullable": "other", "movable_object.trafficcone": "other",
-        "static_object.bicycle_rack": "other",
+        "vehicle": (
+            "vehicle.bus.bendy", "vehicle.bus.rigid", "vehicle.car", "vehicle.construction",
+            "vehicle.emergency.ambulance", "vehicle.emergency.police", "vehicle.motorcycle",
+            "vehicle.trailer", "vehicle.truck",
+        ),
+        "human": (
+            "human.pedestrian.adult", "human.pedestrian.child", "human.pedestrian.construction_worker",
+            "human.pedestrian.police_officer",
+        ),
+        "cyclist": ("vehicle.bicycle",),
+        "other": (
+            "human.pedestrian.personal_mobility", "human.pedestrian.stroller",
+            "human.pedestrian.wheelchair", "animal", "movable_object.barrier", "movable_object.debris",
+            "movable_object.pushable_pullable", "movable_object.trafficcone", "static_object.bicycle_rack",
+        ),
     },
     "pandaset": {
-        "Bus": "vehicle", "Car": "vehicle", "Emergency Vehicle": "vehicle", "Medium-sized Truck": "vehicle",
-        "Motorcycle": "vehicle", "Motorized Scooter": "vehicle", "Other Vehicle - Construction Vehicle": "vehicle",
-        "Other Vehicle - Pedicab": "vehicle", "Other Vehicle - Uncommon": "vehicle", "Pickup Truck": "vehicle",
-        "Semi-truck": "vehicle", "Train": "vehicle", "Tram / Subway": "vehicle", "Towed Object": "vehicle",
-        "Pedestrian": "human", "Pedestrian with Object": "human",
-        "Bicycle": "cyclist", "Animals - Bird": "other", "Animals - Other": "other",
-        "Personal Mobility Device": "other", "Construction Signs": "other", "Cones": "other",
-        "Pylons": "other", "Road Barriers": "other", "Rolling Containers": "other", "Signs": "other",
-        "Temporary Construction Barriers": "other",
+        "vehicle": (
+            "Bus", "Car", "Emergency Vehicle", "Medium-sized Truck", "Motorcycle", "Motorized Scooter",
+            "Other Vehicle - Construction Vehicle", "Other Vehicle - Pedicab", "Other Vehicle - Uncommon",
+            "Pickup Truck", "Semi-truck", "Train", "Tram / Subway", "Towed Object",
+        ),
+        "human": ("Pedestrian", "Pedestrian with Object"),
+        "cyclist": ("Bicycle",),
+        "other": (
+            "Animals - Bird", "Animals - Other", "Personal Mobility Device", "Construction Signs", "Cones",
+            "Pylons", "Road Barriers", "Rolling Containers", "Signs", "Temporary Construction Barriers",
+        ),
     },
     "argoverse": {
-        "ARTICULATED_BUS": "vehicle", "BOLLARD": "vehicle", "BOX_TRUCK": "vehicle", "BUS": "vehicle",
-        "CONSTRUCTION_BARREL": "vehicle", "CONSTRUCTION_CONE": "vehicle", "LARGE_VEHICLE": "vehicle",
-        "MESSAGE_BOARD_TRAILER": "vehicle", "MOBILE_PEDESTRIAN_CROSSING_SIGN": "vehicle", "MOTORCYCLE": "vehicle",
-        "RAILED_VEHICLE": "vehicle", "REGULAR_VEHICLE": "vehicle", "SCHOOL_BUS": "vehicle", "SIGN": "vehicle",
-        "STOP_SIGN": "vehicle", "TRAFFIC_LIGHT_TRAILER": "vehicle", "TRUCK": "vehicle", "TRUCK_CAB": "vehicle",
-        "VEHICULAR_TRAILER": "vehicle",
-        "PEDESTRIAN": "human", "OFFICIAL_SIGNALER": "human",
-        "BICYCLE": "cyclist", "BICYCLIST": "cyclist", "MOTORCYCLIST": "cyclist", "WHEELED_RIDER": "cyclist",
-        "ANIMAL": "other", "DOG": "other", "STROLLER": "other", "WHEELCHAIR": "other", "WHEELED_DEVICE": "other",
+        "vehicle": (
+            "ARTICULATED_BUS", "BOLLARD", "BOX_TRUCK", "BUS", "CONSTRUCTION_BARREL", "CONSTRUCTION_CONE",
+            "LARGE_VEHICLE", "MESSAGE_BOARD_TRAILER", "MOBILE_PEDESTRIAN_CROSSING_SIGN", "MOTORCYCLE",
+            "RAILED_VEHICLE", "REGULAR_VEHICLE", "SCHOOL_BUS", "SIGN", "STOP_SIGN", "TRAFFIC_LIGHT_TRAILER",
+            "TRUCK", "TRUCK_CAB", "VEHICULAR_TRAILER",
+        ),
+        "human": ("PEDESTRIAN", "OFFICIAL_SIGNALER"),
+        "cyclist": ("BICYCLE", "BICYCLIST", "MOTORCYCLIST", "WHEELED_RIDER"),
+        "other": ("ANIMAL", "DOG", "STROLLER", "WHEELCHAIR", "WHEELED_DEVICE"),
     },
     "kitti": {
-        "Car": "vehicle", "Van": "vehicle", "Truck": "vehicle", "Tram": "vehicle",
-        "Pedestrian": "human", "Person_sitting": "human", "Cyclist": "cyclist", "Misc": "other",
+        "vehicle": ("Car", "Van", "Truck", "Tram"),
+        "human": ("Pedestrian", "Person_sitting"),
+        "cyclist": ("Cyclist",),
+        "other": ("Misc",),
     },
     "nuplan": {
-        "vehicle": "vehicle", "pedestrian": "human", "bicycle": "cyclist", "traffic_cone": "other",
-        "barrier": "other", "czone_sign": "other", "generic_object": "other",
+        "vehicle": ("vehicle",),
+        "human": ("pedestrian",),
+        "cyclist": ("bicycle",),
+        "other": ("traffic_cone", "barrier", "czone_sign", "generic_object"),
     },
 }
+CLASS_CATEGORIES: dict[str, dict[str, str]] = {
+    src: {name: cat for cat, names in table.items() for name in names}
+    for src, table in _CLASSES_BY_CATEGORY.items()
+}
+"""Source -> class name -> category, from the table above."""
 
 
 def category_of(class_name: str, source: str) -> str | None:

@@ -50,17 +50,9 @@ from typing import Literal, Optional, Type
 
 import numpy as np
 
-from omnire.api import image_size
-
-from omnire.data.dataparser import Dataparser, DataparserConfig
-from omnire.data.scene import (
-    ActorTrack,
-    CameraSequence,
-    HumanPoseSequence,
-    LidarSweeps,
-    SceneData,
-    SceneDataError,
-    holdout_split,
+from omnire.api import (
+    STATIONARY_THRESHOLD, ActorTrack, CameraSequence, Dataparser, DataparserConfig, HumanPoseSequence, LidarSweeps,
+    SceneData, SceneDataError, image_size, is_stationary, loaded_camera,
 )
 from omnire_processed import boxes, formats
 from omnire_processed.formats import LIDAR_LAYOUTS, WAYMO_TO_OPENCV, category_of
@@ -136,8 +128,8 @@ class ProcessedDataparserConfig(DataparserConfig):
     """Use fine_dynamic_masks/ instead of dynamic_masks/ when present."""
     up_axis: Literal["auto", "ego"] = "auto"
     """auto: if the cameras' mean up is over 30 deg from +z, turn the nearest ego axis up; ego: trust the ego frame."""
-    stationary_threshold: float = 0.5
-    """Tracks whose box centre moves less than this (metres) over the loaded frames are stationary (unless the file flags them)."""
+    stationary_threshold: float = STATIONARY_THRESHOLD
+    """A track is stationary when the medians of its box centres over the first and last thirds of its loaded frames are less than this many metres apart (unless the file flags it)."""
     file_pixel_centres: Literal["auto", "half", "integer"] = "auto"
     """Pixel-centre convention of intrinsics/: auto by source; half: pixel (i, j) centred at (i+0.5, j+0.5) (used as is); integer: at (i, j) as in OpenCV (+0.5 added)."""
     box_heading_axis: Literal["auto", "+x", "+y", "-x", "-y"] = "auto"
@@ -160,6 +152,7 @@ class ProcessedDataparser(Dataparser):
     # ------------------------------------------------------------------ layout
     def parse(self) -> SceneData:
         cfg = self.config
+        cfg.check()
         root = Path(cfg.data)
         if not root.is_dir():
             raise ProcessedSceneError(f"{root}: scene folder not found")
@@ -216,22 +209,10 @@ class ProcessedDataparser(Dataparser):
         human = {}
         if cfg.load_human_poses and (root / "humanpose" / "smpl.pkl").is_file():
             human = self._human_poses(root, n_full, frames, align, source, per_frame, poses_file, key_to_track)
-        train, test = holdout_split(F, cfg.holdout_every)
-        scene = SceneData(
-            name=root.name,
-            cameras=cameras,
-            frame_timestamps=timestamps,
-            source_frames=frames,
-            train_frames=train,
-            test_frames=test,
-            lidar=lidar,
-            tracks=tracks,
-            human_poses=human,
-            ego_poses=ego_poses,
-        )
         for note in self.notes:
             warnings.warn(f"{root}: {note}", stacklevel=2)
-        return scene.validate()
+        return self.build_scene(root.name, cameras, timestamps, frames, lidar=lidar, tracks=tracks, human_poses=human,
+                                ego_poses=ego_poses)
 
     def _camera_ids(self, root: Path) -> list[int]:
         intr = root / "intrinsics"
@@ -316,13 +297,9 @@ class ProcessedDataparser(Dataparser):
         if distortion is not None and not np.all(np.isfinite(distortion)):
             raise ProcessedSceneError(f"{path}: distortion k1 k2 p1 p2 k3 must be finite, got {distortion.tolist()}")
         images = [self._image_path(root / "images", f"{t:03d}_{cam}") for t in frames]
-        w0, h0 = image_size(images[0])
-        W, H = max(1, round(w0 * self.config.scale)), max(1, round(h0 * self.config.scale))
-        sx, sy = W / w0, H / h0
         centres = self.config.file_pixel_centres
         self.pixel_centres = formats.PIXEL_CENTRES[source] if centres == "auto" else centres
-        shift = 0.5 if self.pixel_centres == "integer" else 0.0  # to continuous coordinates at file size
-        K = np.array([[fx * sx, 0.0, (cx + shift) * sx], [0.0, fy * sy, (cy + shift) * sy], [0.0, 0.0, 1.0]])
+        K0 = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         names = formats.CAMERA_NAMES.get(source, ())
         name = names[cam] if cam < len(names) else f"camera_{cam}"
         sky = self._mask_paths(root / "sky_masks", cam, frames)
@@ -334,18 +311,9 @@ class ProcessedDataparser(Dataparser):
             paths = self._mask_paths(dyn_root / kind, cam, frames)
             if paths is not None:
                 dyn[kind] = paths
-        return CameraSequence(
-            name=name,
-            width=W,
-            height=H,
-            intrinsics=K,
-            distortion=distortion,
-            cam_to_world=align @ c2w_file,
-            image_paths=images,
-            timestamps=frames / self.config.fps,
-            sky_mask_paths=sky,
-            dynamic_mask_paths=dyn or None,
-        )
+        return loaded_camera(name, images, K0, image_size(images[0]), self.config.scale, self.pixel_centres,
+                             distortion=distortion, cam_to_world=align @ c2w_file, timestamps=frames / self.config.fps,
+                             sky_mask_paths=sky, dynamic_mask_paths=dyn or None)
 
     @staticmethod
     def _image_path(folder: Path, stem: str) -> Path:
@@ -473,12 +441,7 @@ class ProcessedDataparser(Dataparser):
             if flags is not None:  # the dataset's own per-frame flag (PandaSet)
                 stationary = bool(flags[sel].all())
             else:
-                centres = poses[present, :3, 3]
-                # Net motion between the medians of the first and last thirds: robust to
-                # per-frame box jitter, which would make parked cars look as if they moved.
-                n3 = max(1, len(centres) // 3)
-                moved = float(np.linalg.norm(np.median(centres[-n3:], 0) - np.median(centres[:n3], 0)))
-                stationary = moved < self.config.stationary_threshold
+                stationary = is_stationary(poses[present, :3, 3], self.config.stationary_threshold)
             track_id = str(inst.get("id", key))
             tracks.append(ActorTrack(track_id, class_name, category, poses, size, present, stationary=stationary))
             key_to_track[str(key)] = track_id

@@ -41,21 +41,9 @@ from typing import Literal, Optional, Type
 import numpy as np
 
 from omnire.api import (
-    MissingFileError,
-    rot_z,
-    ActorTrack,
-    CameraSequence,
-    ConfigError,
-    Dataparser,
-    LidarSweeps,
-    LogDataparserConfig,
-    SceneData,
-    SceneDataError,
-    first_pose_world,
-    frame_range,
-    holdout_split,
-    interpolate_track,
-    user_cache_dir,
+    ActorTrack, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MissingFileError,
+    SceneData, SceneDataError, first_pose_world, frame_range, is_stationary, loaded_camera, majority_label,
+    resample_track, rot_z, thin_points, user_cache_dir,
 )
 from omnire_waymo import rangeimage
 from omnire_waymo.tfrecord import RecordSpan, TFRecordReader
@@ -90,7 +78,6 @@ WAYMO_TO_OPENCV = np.array(
     [[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 )
 _RS = dataset_pb2.CameraCalibration.RollingShutterReadOutDirection
-_LIDAR_SEED = 0
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -240,17 +227,12 @@ class WaymoDataparser(Dataparser):
     # -- options -------------------------------------------------------------------------
     def _check_options(self) -> None:
         cfg = self.config
-        if not cfg.scale > 0:
-            raise ConfigError(f"scale: {cfg.scale}, expected a positive number")
+        cfg.check()
         bad = [n for n in cfg.lidars if n.upper() not in ALL_LIDARS]
         if bad or not cfg.lidars:
             raise ConfigError(f"lidars: {list(cfg.lidars)}; expected a non-empty subset of {list(ALL_LIDARS)}")
         if not cfg.lidar_returns or any(r not in (1, 2) for r in cfg.lidar_returns):
             raise ConfigError(f"lidar_returns: {list(cfg.lidar_returns)}; expected a non-empty subset of (1, 2)")
-        if cfg.max_lidar_points_per_frame < 0:
-            raise ConfigError(f"max_lidar_points_per_frame: {cfg.max_lidar_points_per_frame}, expected >= 0 (0 keeps all)")
-        if cfg.max_track_gap < 0:
-            raise ConfigError(f"max_track_gap: {cfg.max_track_gap}, expected >= 0 seconds")
 
     # -- frames --------------------------------------------------------------------------
     def _read_frame(self, records: TFRecordReader, span: RecordSpan, index: int):
@@ -431,11 +413,7 @@ class WaymoDataparser(Dataparser):
             self.points.append(None)
             self.origins.append(np.full(3, np.nan))
             return
-        pts = np.concatenate(parts)
-        n_max = cfg.max_lidar_points_per_frame
-        if 0 < n_max < len(pts):
-            rng = np.random.default_rng((_LIDAR_SEED, int(index)))  # same frame thins the same in any range
-            pts = pts[np.sort(rng.choice(len(pts), n_max, replace=False))]
+        pts = thin_points(np.concatenate(parts), cfg.max_lidar_points_per_frame, index)  # keyed by the record
         self.points.append(pts.astype(np.float32))
         self.origins.append(origin)
 
@@ -492,36 +470,19 @@ class WaymoDataparser(Dataparser):
                 lidar = LidarSweeps(points=self.points, origins=np.stack(self.origins))
             else:
                 warnings.warn(f"{self.path}: no range images in the loaded frames; the scene has no LiDAR", stacklevel=3)
-        train, test = holdout_split(F, cfg.holdout_every)
         synthetic = self.context_name.startswith(SYNTHETIC_PREFIX)
-        scene = SceneData(
-            name=self.context_name or self.path.stem,
-            cameras=cameras,
-            frame_timestamps=times,
-            source_frames=selected,
-            train_frames=train,
-            test_frames=test,
-            lidar=lidar,
-            tracks=self._tracks(times),
-            ego_poses=self.world[None] @ np.stack(self.ego_global),
-            attribution=SYNTHETIC_ATTRIBUTION if synthetic else ATTRIBUTION,
-        )
-        return scene.validate()
+        return self.build_scene(self.context_name or self.path.stem, cameras, times, selected, lidar=lidar,
+                                tracks=self._tracks(times), ego_poses=self.world[None] @ np.stack(self.ego_global),
+                                attribution=SYNTHETIC_ATTRIBUTION if synthetic else ATTRIBUTION)
 
     def _camera(self, cam: _CameraFrames) -> CameraSequence:
         c = cam.calib
         f_u, f_v, c_u, c_v = c.intrinsic[:4]
-        w_out, h_out = max(1, round(c.width * self.config.scale)), max(1, round(c.height * self.config.scale))
-        sx, sy = w_out / c.width, h_out / c.height
-        K = np.array([[f_u * sx, 0.0, c_u * sx], [0.0, f_v * sy, c_v * sy], [0.0, 0.0, 1.0]])
+        K0 = np.array([[f_u, 0.0, c_u], [0.0, f_v, c_v], [0.0, 0.0, 1.0]])
         F = len(cam.paths)
-        return CameraSequence(
-            name=cam.name,
-            width=w_out,
-            height=h_out,
-            intrinsics=K,
+        return loaded_camera(  # pixel centres at +0.5 (module docstring)
+            cam.name, cam.paths, K0, (c.width, c.height), self.config.scale, "half",
             cam_to_world=np.stack(cam.c2w),
-            image_paths=cam.paths,
             timestamps=np.asarray(cam.times, dtype=np.float64),
             distortion=np.asarray(c.intrinsic[4:9], dtype=np.float64),
             extras={
@@ -554,24 +515,9 @@ class WaymoDataparser(Dataparser):
                 raise SceneDataError(f"{self.path}: object id {tid!r} is labelled twice in one frame")
             annotated = np.zeros(F, bool)
             annotated[idx] = True
-            poses = np.tile(np.eye(4), (F, 1, 1))
-            poses[idx] = cat["pose"][rows]
-            if cfg.max_track_gap > 0 and len(idx) > 1:
-                filled, present = interpolate_track(times, poses, annotated, times, max_gap=cfg.max_track_gap)
-                poses = np.where(annotated[:, None, None], poses, filled)
-                present = present | annotated
-            else:
-                present = annotated
-            # Absent frames are unspecified: hold the nearest earlier pose (the first one
-            # before the actor appears) so consumers never meet garbage by accident.
-            last = np.maximum.accumulate(np.where(present, np.arange(F), -1))
-            last[last < 0] = idx.min()
-            poses = poses[last]
-            types, counts = np.unique(kinds[rows].astype(str), return_counts=True)
-            label = str(types[np.argmax(counts)])
-            centres = poses[present, :3, 3]
-            n = max(1, len(centres) // 3)
-            moved = float(np.linalg.norm(np.median(centres[-n:], 0) - np.median(centres[:n], 0)))
+            order = np.argsort(idx)
+            poses, present = resample_track(times[idx[order]], cat["pose"][rows][order], times, cfg.max_track_gap)
+            label = majority_label(kinds[rows])
 
             def per_frame(key, fill, values=None):
                 src = cat[key][rows] if values is None else values
@@ -598,7 +544,7 @@ class WaymoDataparser(Dataparser):
                     poses=poses,
                     size=cat["size"][rows].max(axis=0),
                     present=present,
-                    stationary=moved < cfg.stationary_threshold,
+                    stationary=is_stationary(poses[present, :3, 3], cfg.stationary_threshold),
                     extras=extras,
                 )
             )
@@ -618,15 +564,9 @@ class WaymoConfig(LogDataparserConfig):
     """LiDARs whose range images become points: any of TOP, FRONT, SIDE_LEFT, SIDE_RIGHT, REAR."""
     lidar_returns: tuple[int, ...] = (1, 2)
     """Range image returns to use: 1 (strongest), 2 (second strongest)."""
-    max_lidar_points_per_frame: int = 0
-    """Randomly thin each frame's points to at most this many (fixed seed per frame); 0 keeps all."""
     image_dir: Optional[Path] = None
     """Where the JPEGs embedded in the segment are extracted (reused when present); default <root>/<segment name> with root $OMNIRE_WAYMO_IMAGE_DIR or ~/.cache/omnire/waymo-images. Never inside the dataset folder."""
     camera_time: Literal["exposure", "pose"] = "exposure"
     """Camera timestamps: exposure = mid-exposure at the principal point from the rolling-shutter fields (poses extrapolated there with the image's velocity); pose = CameraImage.pose_timestamp."""
-    max_track_gap: float = 1.0
-    """Fill a track's unlabelled frames by interpolation when its labels around them are at most this many seconds apart; 0 disables."""
-    stationary_threshold: float = 0.5
-    """Tracks whose box centre moves less than this (metres) over the loaded frames are stationary."""
     check_crc: bool = True
     """Verify each record's CRC-32C (cheap; catches damaged downloads)."""
