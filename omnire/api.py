@@ -87,6 +87,18 @@ from omnire.runconfig import TrainConfig, TrainerConfig
 from omnire.runtime import Reconstruction
 from omnire.trainer import Trainer
 
+# LiDAR beams (docs/lidar.md)
+from omnire.beams import (
+    RangeImage,
+    assign_beams,
+    estimate_azimuth_resolution,
+    estimate_elevations,
+    points_in_sensor_frame,
+    range_image,
+    spherical,
+)
+from omnire.data.scene import BeamModel
+
 __all__ = [
     "CATEGORIES", "GAUSSIAN_KEYS", "MissingFileError", "ActorNode", "ActorState", "ActorPoses", "ActorTrack", "BackgroundConfig", "BoxActorConfig",
     "BoxActorNode", "Camera", "CameraSequence", "CommandSpec", "ConfigError", "Dataparser", "DataparserConfig",
@@ -104,4 +116,7 @@ __all__ = [
     "to_tensor", "track_displacement", "train_frame_bracket", "transform_instances", "usable_track", "user_cache_dir",
     "placed_output", "Placement",
     "visible_in_cameras", "voxel_downsample", "write_png",
+    # LiDAR beams (docs/lidar.md)
+    "BeamModel", "RangeImage", "assign_beams", "estimate_azimuth_resolution", "estimate_elevations",
+    "points_in_sensor_frame", "range_image", "spherical",
 ]

@@ -384,3 +384,26 @@ def test_error_bad_lidar_columns(tmp_path):
     path.write_bytes(gzip.compress(pickle.dumps(df)))
     with pytest.raises(SceneDataError, match=r"01\.pkl\.gz: LiDAR point cloud lacks columns \['t'\]"):
         parse_small(root)
+
+
+FULL_LIDAR = REPO.parent / "shared" / "data" / "pandaset" / "002-full-lidar"
+
+
+@pytest.mark.skipif(not (FULL_LIDAR / "lidar").is_dir() or not FULL.is_dir(),
+                    reason=f"complete PandaSet sweeps not present at {FULL_LIDAR}")
+def test_full_lidar_sweeps(tmp_path):
+    """The complete Pandar64 sweeps of frames 40-79: one revolution (0.1 s at 10 Hz) ending
+    at the frame's timestamp, at most one return per firing of the datasheet's grid
+    (64 beams x 1800 azimuths at 0.2 degrees), every column carried."""
+    # The shared copy keeps its camera/annotations/meta links as text files: link them here.
+    for sub in ("camera", "annotations", "meta"):
+        (tmp_path / sub).symlink_to(FULL / sub)
+    (tmp_path / "lidar").symlink_to(FULL_LIDAR / "lidar")
+    s = parse(tmp_path, cameras=("front_camera",), start_frame=40, end_frame=44, lidar_sensors=(0,))
+    raw = load_frame_table(FULL_LIDAR / "lidar/40.pkl.gz")
+    assert len(s.lidar.points[0]) == len(raw) and (raw["d"] == 0).all()
+    for i in s.lidar.available_frames():
+        t = s.lidar.times[i] - s.frame_timestamps[i]
+        assert -0.105 < t.min() < -0.095 and 0.0 <= t.max() < 0.005
+        assert 0.85 * 64 * 1800 < len(t) <= 64 * 1800  # ~92% of the firings return
+        assert s.lidar.intensity[i].max() == 1.0
