@@ -101,8 +101,9 @@ class RangeImage:
         range: (B, A) float32 metres, NaN where the ray returned nothing.
         returned: (B, A) bool, False = a missing return (ray drop, sky, beyond max range).
         point: (B, A) int64 index of the return into the sweep's points (-1 where none).
-        azimuth_offset_deg: (B,) firing azimuth of column 0 of each beam (the per-laser
-            azimuth offset, estimated from the sweep); column k fires at offset + k * step.
+        azimuth_offset_deg: (B,) firing azimuth of column 0 of each beam, in [-step/2,
+            step/2) (the per-laser azimuth offset modulo the step, estimated from the
+            sweep); column k fires at offset + k * step.
         collisions: returns that fell on an occupied cell (the nearer one in range is kept).
     """
 
@@ -138,7 +139,8 @@ def range_image(ranges: np.ndarray, azimuth_deg: np.ndarray, beams: np.ndarray, 
     phase = 2 * np.pi * (azimuth_deg[keep] % step) / step
     s = np.bincount(b, np.sin(phase), minlength=B)
     c = np.bincount(b, np.cos(phase), minlength=B)
-    offset = (np.arctan2(s, c) % (2 * np.pi)) / (2 * np.pi) * step  # (B,)
+    offset = np.arctan2(s, c) / (2 * np.pi) * step  # (B,) in [-step/2, step/2]: column k is near k * step
+    offset = np.where(offset >= step / 2, offset - step, offset)
     col = np.round((azimuth_deg[keep] - offset[b]) / step).astype(np.int64) % A
     cell = b * A + col
     order = np.lexsort((ranges[keep], cell))  # by cell, nearest first

@@ -11,14 +11,15 @@ from omnire.data.scene import BeamModel, LidarSweeps, SceneDataError
 from omnire.interpolation import interpolate_poses
 
 MODEL = BeamModel(np.array([10.0, 3.0, 1.0, 0.5, 0.0, -0.5, -2.0, -8.0, -15.0]), 0.5, 100.0, 0.3, "toy")
+OFFSETS = np.linspace(-0.24, 0.24, 9)[[4, 0, 8, 2, 6, 1, 7, 3, 5]]
+"""Per-laser azimuth offsets (degrees, within half a step) of the toy sensor's beams."""
 
 
 def _sweep(rng: np.random.Generator, drop: float = 0.2) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every ray of MODEL with per-beam azimuth offsets, random ranges, a fraction dropped.
+    """Every ray of MODEL with the beams' azimuth OFFSETS, random ranges, a fraction dropped.
     Returns sensor-frame points (N, 3), true beam (N,), true column (N,), kept mask (B*A,)."""
     d, beam, col = MODEL.directions()
-    offsets = rng.uniform(0, MODEL.azimuth_resolution_deg, MODEL.num_beams)
-    az = np.deg2rad(col * MODEL.azimuth_resolution_deg + offsets[beam])
+    az = np.deg2rad(col * MODEL.azimuth_resolution_deg + OFFSETS[beam])
     el = np.deg2rad(MODEL.elevations_deg[beam])
     d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
     kept = rng.random(len(d)) >= drop
@@ -78,8 +79,8 @@ def test_beams_elevations_and_azimuth_step_recovered():
     est = estimate_elevations(el, MODEL.num_beams)
     np.testing.assert_allclose(est, np.sort(MODEL.elevations_deg)[::-1], atol=0.01)
     assert estimate_azimuth_resolution(az, beam) == pytest.approx(MODEL.azimuth_resolution_deg, abs=0.01)
-    with pytest.raises(SceneDataError, match="peaks"):
-        estimate_elevations(el, 20)
+    with pytest.raises(SceneDataError, match="found 1 elevation peaks, expected 2"):
+        estimate_elevations(np.full(100, 3.0), 2)
 
 
 def test_range_image_recovers_missing_returns_exactly():
@@ -89,15 +90,12 @@ def test_range_image_recovers_missing_returns_exactly():
     ri = range_image(r, az, beam, MODEL)
     assert ri.collisions == 0
     # Columns are defined up to each beam's offset: compare cell occupancy per beam row as a set.
-    truth = kept.reshape(MODEL.num_beams, MODEL.num_azimuths)
-    assert (ri.returned.sum(1) == truth.sum(1)).all()
-    # brute force: each return lands in the cell of its own column (offset < one step)
+    # Brute force: each return in the cell of its own ray (the offsets lie in (-step/2, step/2)).
     expect = np.full((MODEL.num_beams, MODEL.num_azimuths), np.nan, np.float32)
     expect[beam, col] = r
-    shift = [int(np.round((np.nanargmax(np.isfinite(ri.range[b])) - np.nanargmax(np.isfinite(expect[b]))))) for b in
-             range(MODEL.num_beams)]
-    for b in range(MODEL.num_beams):
-        np.testing.assert_allclose(np.roll(expect[b], shift[b]), ri.range[b], rtol=1e-6)
+    np.testing.assert_array_equal(ri.returned, kept.reshape(MODEL.num_beams, MODEL.num_azimuths))
+    np.testing.assert_allclose(ri.range, expect, rtol=1e-6)
+    np.testing.assert_allclose(ri.azimuth_offset_deg, OFFSETS, atol=1e-9)
     assert (ri.point[ri.returned] >= 0).all() and (ri.point[~ri.returned] == -1).all()
     np.testing.assert_allclose(r[ri.point[ri.returned]], ri.range[ri.returned], rtol=1e-6)
     # Two returns in one cell: one collision, the nearer kept.

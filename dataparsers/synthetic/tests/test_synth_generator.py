@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from omnire_body import lbs, load_template
@@ -232,3 +233,32 @@ def test_output_folder_rules(tmp_path):
     assert (out / "extrinsics" / "0.txt").is_file()
     generate(out, "empty", SynthOptions(frames=2, width=16, height=12, style="pandaset"))
     assert not (out / "extrinsics" / "0.txt").exists() and (out / "extrinsics" / "000_0.txt").is_file()
+
+
+def test_missing_returns_recovered_from_a_ray_traced_street():
+    """omnire.beams on a ray-traced sweep of the urban street (buildings, cars, sky): the
+    returns alone give back each one's beam, the azimuth step, and the range image whose
+    "no return" cells are exactly the rays the caster dropped (sky, range, grazing)."""
+    from omnire.beams import assign_beams, estimate_azimuth_resolution, range_image, spherical
+    from omnire_synthetic.textures import build_textures
+    from omnire_synthetic.world import LIDAR_HEIGHT, build_static
+
+    spec = PRESETS["urban"]
+    times = np.arange(2) / 10.0
+    ego = ego_trajectory(spec, times)
+    static = build_static(spec, np.random.default_rng(0), -40.0, 160.0)
+    model = BeamModel(np.linspace(-25.0, 10.0, 32), 0.4, 60.0, 0.3)
+    sensor = ego[1].copy()
+    sensor[2, 3] += LIDAR_HEIGHT
+    sweep = cast_sweep(static.verts, static.faces, static.mat, sensor, LidarSpec(model, build_textures(0)[1]))
+    ok = sweep.returned
+    assert 0.3 < ok.mean() < 0.95 and {NOTHING_HIT, OUT_OF_RANGE, GRAZING} <= set(np.unique(sweep.reason))
+    r, az, el = spherical(sweep.points_sensor())
+    np.testing.assert_allclose(r, sweep.range[ok], rtol=1e-9)
+    beams = assign_beams(el, model)
+    np.testing.assert_array_equal(beams, sweep.beam[ok])
+    assert estimate_azimuth_resolution(az, beams) == pytest.approx(0.4, abs=1e-6)
+    image = range_image(r, az, beams, model)
+    assert image.collisions == 0
+    np.testing.assert_array_equal(image.returned, ok.reshape(model.num_beams, model.num_azimuths))
+    np.testing.assert_allclose(image.range[image.returned], sweep.range[ok], rtol=1e-6)
