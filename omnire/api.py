@@ -101,6 +101,17 @@ from omnire.data.dataparser import (
 )
 from omnire.data.images import read_image
 from omnire.pointcloud import thin_points
+# LiDAR beams (docs/lidar.md)
+from omnire.beams import (
+    RangeImage,
+    assign_beams,
+    estimate_azimuth_resolution,
+    estimate_elevations,
+    points_in_sensor_frame,
+    range_image,
+    spherical,
+)
+from omnire.data.scene import BeamModel
 
 __all__ = [
     "CATEGORIES", "GAUSSIAN_KEYS", "MissingFileError", "ActorNode", "ActorState", "ActorPoses", "ActorTrack", "BackgroundConfig", "BoxActorConfig",
@@ -122,4 +133,7 @@ __all__ = [
     # Shared by dataset readers (dataparsers).
     "STATIONARY_THRESHOLD", "MaxTrackGap", "hold_absent_poses", "is_stationary", "loaded_camera",
     "loaded_intrinsics", "majority_label", "read_image", "require_files", "resample_track", "thin_points",
+    # LiDAR beams (docs/lidar.md)
+    "BeamModel", "RangeImage", "assign_beams", "estimate_azimuth_resolution", "estimate_elevations",
+    "points_in_sensor_frame", "range_image", "spherical",
 ]

@@ -96,7 +96,30 @@ def _empty_cuboids(scene: Path) -> str:
     return "02.pkl.gz"
 
 
-CORRUPT = {"truncated jpeg": _truncate_image, "zero focal length": _zero_focal,
+def _edit_lidar_column(scene: Path, column: str, value: float) -> None:
+    from omnire_pandaset.dataparser import load_frame_table
+    import numpy as np
+    import pandas as pd
+
+    path = scene / "lidar" / "00.pkl.gz"
+    df = load_frame_table(path)
+    df.index = pd.Index(np.arange(len(df)), dtype=np.int64)  # a RangeIndex pickles as a global the reader refuses
+    df.loc[7, column] = value
+    path.write_bytes(gzip.compress(pickle.dumps(df)))
+
+
+def _lidar_intensity_out_of_range(scene: Path) -> str:
+    _edit_lidar_column(scene, "i", -3.0)
+    return "00.pkl.gz: column i (intensity) must hold numbers in 0..255"
+
+
+def _lidar_time_nan(scene: Path) -> str:
+    _edit_lidar_column(scene, "t", float("nan"))
+    return "00.pkl.gz: column t (per-point time) holds NaN or inf"
+
+
+CORRUPT = {"lidar intensity out of range": _lidar_intensity_out_of_range, "lidar time nan": _lidar_time_nan,
+           "truncated jpeg": _truncate_image, "zero focal length": _zero_focal,
            "principal point outside": _far_principal_point, "nan timestamp": _nan_timestamp,
            "malicious lidar pickle": _evil_lidar_pickle, "gzip bomb": _lidar_bomb,
            "empty cuboid file": _empty_cuboids}

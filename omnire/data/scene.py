@@ -74,18 +74,144 @@ class CameraSequence:
                                  device)
 
 
+@dataclasses.dataclass(frozen=True)
+class BeamModel:
+    """The ray layout of a spinning LiDAR (docs/lidar.md).
+
+    Angles are in the sensor frame (:attr:`LidarSweeps.sensor_to_world`: x forward, y left,
+    z up): elevation above the x-y plane, azimuth counter-clockwise from +x.
+
+    Attributes:
+        elevations_deg: (B,) elevation of each beam in degrees; the beam index of a return
+            (:attr:`LidarSweeps.beams`) indexes this array. Any order (datasets number
+            their lasers differently); :meth:`order` sorts them.
+        azimuth_resolution_deg: azimuth step between two firings of one beam, degrees.
+        max_range: metres; a ray with nothing nearer returns nothing.
+        min_range: metres; nearer surfaces return nothing either.
+        name: the sensor, for reports.
+    """
+
+    elevations_deg: np.ndarray
+    azimuth_resolution_deg: float
+    max_range: float
+    min_range: float = 0.0
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        el = np.asarray(self.elevations_deg, dtype=np.float64)
+        if el.ndim != 1 or len(el) == 0:
+            raise SceneDataError(f"beam model {self.name!r}.elevations_deg: shape {el.shape}, expected (B,) with B >= 1")
+        if not np.isfinite(el).all() or np.abs(el).max() >= 90.0:
+            raise SceneDataError(f"beam model {self.name!r}.elevations_deg: expected finite degrees in (-90, 90)")
+        if len(np.unique(el)) != len(el):
+            raise SceneDataError(f"beam model {self.name!r}.elevations_deg: two beams share an elevation")
+        res = self.azimuth_resolution_deg
+        if not (np.isfinite(res) and 0.0 < res <= 360.0):
+            raise SceneDataError(f"beam model {self.name!r}.azimuth_resolution_deg: {res}, expected in (0, 360]")
+        if not (np.isfinite(self.max_range) and 0.0 <= self.min_range < self.max_range):
+            raise SceneDataError(f"beam model {self.name!r}: min_range {self.min_range}, max_range "
+                                 f"{self.max_range}; expected finite metres with 0 <= min_range < max_range")
+        object.__setattr__(self, "elevations_deg", el)
+
+    @property
+    def num_beams(self) -> int:
+        return len(self.elevations_deg)
+
+    @property
+    def num_azimuths(self) -> int:
+        """Azimuth bins of one revolution (the width of a range image)."""
+        return int(round(360.0 / self.azimuth_resolution_deg))
+
+    def order(self) -> np.ndarray:
+        """(B,) beam indices from the top beam to the bottom one (range-image rows)."""
+        return np.argsort(-self.elevations_deg, kind="stable")
+
+    def directions(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every ray of one revolution: unit directions (B * A, 3) in the sensor frame,
+        beam index (B * A,) and azimuth bin (B * A,), beam-major; bin k is at azimuth
+        ``k * azimuth_resolution_deg``."""
+        az = np.deg2rad(np.arange(self.num_azimuths) * (360.0 / self.num_azimuths))
+        el = np.deg2rad(self.elevations_deg)
+        E, A = np.meshgrid(el, az, indexing="ij")  # (B, A)
+        d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
+        beam, col = np.meshgrid(np.arange(self.num_beams), np.arange(self.num_azimuths), indexing="ij")
+        return d, beam.reshape(-1), col.reshape(-1)
+
+
 @dataclasses.dataclass
 class LidarSweeps:
-    """LiDAR points per frame, in the world frame.
+    """LiDAR points per frame, in the world frame, with what the dataset records per point.
+
+    Every per-point field is a list of F entries aligned with ``points`` (None exactly where
+    ``points[t]`` is None), or None as a whole when the dataset does not record it.
+    Checked on construction (:class:`SceneDataError` naming the field).
 
     Attributes:
         points: F entries, each (N_t, 3) float32 world xyz, or None where the frame has no
             LiDAR (a real gap: consumers must skip it).
         origins: (F, 3) sensor origin in the world per frame (NaN where missing).
+        intensity: optional F entries of (N_t,) float32 return strength, >= 0, divided by
+            the dataset's full scale where it has one (PandaSet 0-255 -> 0-1).
+        times: optional F entries of (N_t,) float64 seconds on the log's clock
+            (:attr:`SceneData.frame_timestamps`) at which each return was measured.
+        beams: optional F entries of (N_t,) int16 beam index into
+            ``beam_model.elevations_deg``; -1 for a return of another sensor (PandaSet's
+            forward PandarGT). Requires ``beam_model``.
+        sensor_to_world: optional (F, 4, 4) pose of the sensor at the frame's timestamp,
+            axes x forward, y left, z up (NaN where the frame has no LiDAR); its
+            translation equals ``origins``.
+        beam_model: optional :class:`BeamModel` of the sensor the beams refer to.
     """
 
     points: list[Optional[np.ndarray]]
     origins: np.ndarray
+    intensity: Optional[list[Optional[np.ndarray]]] = None
+    times: Optional[list[Optional[np.ndarray]]] = None
+    beams: Optional[list[Optional[np.ndarray]]] = None
+    sensor_to_world: Optional[np.ndarray] = None
+    beam_model: Optional[BeamModel] = None
+
+    def __post_init__(self) -> None:
+        F = len(self.points)
+        for name in ("intensity", "times", "beams"):
+            self._check_per_point(name, F)
+        if self.beams is not None:
+            if self.beam_model is None:
+                raise SceneDataError("lidar.beams: given without lidar.beam_model (the elevations they index)")
+            B = self.beam_model.num_beams
+            for t, b in enumerate(self.beams):
+                if b is not None and len(b) and (b.min() < -1 or b.max() >= B):
+                    raise SceneDataError(f"lidar.beams[{t}]: values {b.min()}..{b.max()}, expected -1..{B - 1}")
+        if self.intensity is not None:
+            for t, v in enumerate(self.intensity):
+                if v is not None and len(v) and not v.min() >= 0:
+                    raise SceneDataError(f"lidar.intensity[{t}]: negative values, expected >= 0")
+        if self.sensor_to_world is not None:
+            _check_shape(self.sensor_to_world, (F, 4, 4), "lidar.sensor_to_world", finite=False)
+            have = np.array([p is not None for p in self.points], dtype=bool)
+            poses = self.sensor_to_world[have]
+            if not np.isfinite(poses).all():
+                raise SceneDataError("lidar.sensor_to_world: NaN or inf in a frame that has LiDAR")
+            if len(poses) and np.abs(poses[:, :3, 3] - np.asarray(self.origins)[have]).max() > 1e-6:
+                raise SceneDataError("lidar.sensor_to_world: translations differ from lidar.origins")
+
+    def _check_per_point(self, name: str, F: int) -> None:
+        values = getattr(self, name)
+        if values is None:
+            return
+        if len(values) != F:
+            raise SceneDataError(f"lidar.{name}: {len(values)} frames, expected {F} (one per lidar.points entry)")
+        for t, (v, p) in enumerate(zip(values, self.points)):
+            if (v is None) != (p is None):
+                raise SceneDataError(f"lidar.{name}[{t}]: {'None' if v is None else 'given'} where lidar.points[{t}] "
+                                     f"is {'None' if p is None else 'given'}")
+            if v is None:
+                continue
+            if not isinstance(v, np.ndarray) or v.shape != (len(p),):
+                raise SceneDataError(f"lidar.{name}[{t}]: shape {getattr(v, 'shape', type(v).__name__)}, "
+                                     f"expected ({len(p)},) (one value per point)")
+            if v.dtype.kind == "f" and not np.isfinite(v).all():
+                raise SceneDataError(f"lidar.{name}[{t}]: contains NaN or inf")
 
     def available_frames(self) -> list[int]:
         return [i for i, p in enumerate(self.points) if p is not None]

@@ -453,27 +453,38 @@ class PandasetDataparser(Dataparser):
         self, lidar_dir: Path, lidar_poses: np.ndarray, frames: np.ndarray, source_frames: np.ndarray, world: np.ndarray
     ) -> LidarSweeps:
         cfg = self.config
-        use_all = set(cfg.lidar_sensors) >= set(LIDAR_SENSORS)
-        columns = ("x", "y", "z") if use_all else ("x", "y", "z", "d")
+        columns = ("x", "y", "z", "i", "t", "d")
         points: list[Optional[np.ndarray]] = []
-        origins = np.full((len(frames), 3), np.nan)  # NaN where the frame has no LiDAR file
+        intensity: list[Optional[np.ndarray]] = []
+        times: list[Optional[np.ndarray]] = []
+        sensor_to_world = np.full((len(frames), 4, 4), np.nan)  # NaN where the frame has no LiDAR file
         for j, (f, src) in enumerate(zip(frames, source_frames)):
             path = _frame_file(lidar_dir, int(f), ".pkl.gz")
             if not path.is_file():  # real gaps in PandaSet logs (002 lacks 56-58 and 71)
                 points.append(None)
+                intensity.append(None)
+                times.append(None)
                 continue
             table = _read_frame_table(path, columns, "LiDAR point cloud")
-            xyz = table[["x", "y", "z"]].to_numpy(np.float64)  # (N, 3) PandaSet world
-            if not use_all:
-                xyz = xyz[np.isin(table["d"].to_numpy(), list(cfg.lidar_sensors))]
-            xyz = thin_points(xyz, cfg.max_lidar_points_per_frame, src)  # keyed by the source frame number
+            keep = np.flatnonzero(np.isin(table["d"].to_numpy(), list(cfg.lidar_sensors)))
+            keep = thin_points(keep, cfg.max_lidar_points_per_frame, src)  # keyed by the source frame number
+            xyz = table[["x", "y", "z"]].to_numpy(np.float64)[keep]  # (N, 3) PandaSet world
             xyz = xyz @ world[:3, :3].T + world[:3, 3]
             if not np.isfinite(xyz).all():
                 raise SceneDataError(f"{path}: non-finite x, y, z values")
+            strength = table["i"].to_numpy(np.float64)[keep]
+            if not (np.isfinite(strength).all() and (strength >= 0).all() and (strength <= 255).all()):
+                raise SceneDataError(f"{path}: column i (intensity) must hold numbers in 0..255")
+            stamp = table["t"].to_numpy(np.float64)[keep]
+            if not np.isfinite(stamp).all():
+                raise SceneDataError(f"{path}: column t (per-point time) holds NaN or inf; expected seconds")
             points.append(xyz.astype(np.float32))
-            # One origin per frame: the Pandar64 position (the PandarGT sits ~1 m apart).
-            origins[j] = (world @ lidar_poses[f])[:3, 3]
-        return LidarSweeps(points=points, origins=origins)
+            intensity.append((strength / 255.0).astype(np.float32))
+            times.append(stamp)
+            # One pose per frame: the Pandar64's (the PandarGT sits ~1 m apart), in x-forward axes.
+            sensor_to_world[j] = world @ lidar_poses[f] @ _EGO_IN_LIDAR
+        return LidarSweeps(points=points, origins=sensor_to_world[:, :3, 3].copy(), intensity=intensity, times=times,
+                           sensor_to_world=sensor_to_world)
 
     def _tracks(self, root: Path, frames: np.ndarray, world: np.ndarray) -> list[ActorTrack]:
         box_dir = root / "annotations" / "cuboids"

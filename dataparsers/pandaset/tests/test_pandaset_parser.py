@@ -350,3 +350,60 @@ def test_plugin_registered():
     spec = plugins.dataparsers.get("pandaset")
     assert spec.config_factory is PandasetConfig
     assert plugins.dataparsers.provenance("pandaset").distribution == "omnire-dataparser-pandaset"
+
+
+def test_lidar_intensity_times_and_sensor_poses(demo):
+    """Columns i and t ride along with the points (the same thinning), and the sensor pose
+    of each sweep is the Pandar64's in x-forward axes (x = ego heading, as ego_poses)."""
+    lidar = demo.lidar
+    for i in lidar.available_frames():
+        assert lidar.intensity[i].dtype == np.float32 and 0 <= lidar.intensity[i].min() <= lidar.intensity[i].max() <= 1
+        # A Pandar64 sweep is the 0.1 s (one revolution) that ends at the frame's timestamp; the
+        # PandarGT is not in phase with it (from 0.13 s before to 0.05 s after the frame on 002).
+        t = lidar.times[i] - demo.frame_timestamps[i]
+        assert -0.15 < t.min() and t.max() < 0.06 and t.max() - t.min() > 0.08
+        np.testing.assert_allclose(lidar.sensor_to_world[i], demo.ego_poses[i], atol=1e-9)
+    assert np.isnan(lidar.sensor_to_world[[16, 17, 18, 31]]).all() and lidar.intensity[16] is None
+    # The same rows as the points: thinning picks intensities and times with them.
+    raw = load_frame_table(DEMO / "lidar/05.pkl.gz")
+    s = parse(DEMO, cameras=("front_camera",), start_frame=5, end_frame=6, max_lidar_points_per_frame=500)
+    kept = np.isin(raw[["t"]].to_numpy()[:, 0], s.lidar.times[0])
+    assert kept.sum() >= 500 and np.isin(s.lidar.intensity[0] * 255, raw["i"].to_numpy()[kept]).all()
+
+
+def test_error_bad_lidar_columns(tmp_path):
+    root = small_copy(tmp_path)
+    path = root / "lidar/01.pkl.gz"
+    df = load_frame_table(path)
+    df.index = pd.Index(np.arange(len(df)), dtype=np.int64)  # see test_error_cuboids_missing_columns
+    df.loc[3, "i"] = 300.0
+    path.write_bytes(gzip.compress(pickle.dumps(df)))
+    with pytest.raises(SceneDataError, match=r"01\.pkl\.gz: column i \(intensity\) must hold numbers in 0\.\.255"):
+        parse_small(root)
+    df = df.drop(columns=["t"])
+    path.write_bytes(gzip.compress(pickle.dumps(df)))
+    with pytest.raises(SceneDataError, match=r"01\.pkl\.gz: LiDAR point cloud lacks columns \['t'\]"):
+        parse_small(root)
+
+
+FULL_LIDAR = REPO.parent / "shared" / "data" / "pandaset" / "002-full-lidar"
+
+
+@pytest.mark.skipif(not (FULL_LIDAR / "lidar").is_dir() or not FULL.is_dir(),
+                    reason=f"complete PandaSet sweeps not present at {FULL_LIDAR}")
+def test_full_lidar_sweeps(tmp_path):
+    """The complete Pandar64 sweeps of frames 40-79: one revolution (0.1 s at 10 Hz) ending
+    at the frame's timestamp, at most one return per firing of the datasheet's grid
+    (64 beams x 1800 azimuths at 0.2 degrees), every column carried."""
+    # The shared copy keeps its camera/annotations/meta links as text files: link them here.
+    for sub in ("camera", "annotations", "meta"):
+        (tmp_path / sub).symlink_to(FULL / sub)
+    (tmp_path / "lidar").symlink_to(FULL_LIDAR / "lidar")
+    s = parse(tmp_path, cameras=("front_camera",), start_frame=40, end_frame=44, lidar_sensors=(0,))
+    raw = load_frame_table(FULL_LIDAR / "lidar/40.pkl.gz")
+    assert len(s.lidar.points[0]) == len(raw) and (raw["d"] == 0).all()
+    for i in s.lidar.available_frames():
+        t = s.lidar.times[i] - s.frame_timestamps[i]
+        assert -0.105 < t.min() < -0.095 and 0.0 <= t.max() < 0.005
+        assert 0.85 * 64 * 1800 < len(t) <= 64 * 1800  # ~92% of the firings return
+        assert s.lidar.intensity[i].max() == 1.0

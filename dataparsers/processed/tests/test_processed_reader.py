@@ -158,10 +158,11 @@ def test_nuscenes_y_down_world_converted_to_z_up(scenes):
     assert not (path / "ego_pose").exists()
     scene, parser = read(path)
     assert parser.source == "nuscenes"
-    # Ground points (LiDAR on the road) are at one height in the converted world.
+    # Ground points (LiDAR on the road) are at one height in the converted world (exactly:
+    # the ray-traced returns lie on the road plane, so the 20th percentile is that height).
     pts = scene.lidar.points[0]
-    low = pts[pts[:, 2] < np.percentile(pts[:, 2], 20)]
-    assert np.std(low[:, 2]) < 0.2
+    low = pts[pts[:, 2] <= np.percentile(pts[:, 2], 20)]
+    assert len(low) > 1000 and np.std(low[:, 2]) < 0.2
     # A known point (a box centre, in the file's y-down world) projects to the same pixel
     # through the file's extrinsics/intrinsics and through the converted camera.
     info = json.loads((path / "instances" / "instances_info.json").read_text())

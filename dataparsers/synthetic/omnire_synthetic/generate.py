@@ -33,14 +33,9 @@ from omnire_processed.boxes import AXES, axis_fix, size_fix
 from omnire_processed.formats import BOX_HEADING_AXIS, PIXEL_CENTRES, WAYMO_TO_OPENCV
 from omnire_synthetic import images
 from omnire_synthetic.meshes import Mesh, rigid, rot_z
-from omnire_synthetic.render import (
-    CullGroups,
-    LidarPattern,
-    rasterize,
-    raycast_via_id_buffer,
-    sample_texture,
-    sphere_in_frustum,
-)
+from omnire.data.scene import BeamModel
+from omnire_synthetic.lidar import LidarSpec, cast_sweep
+from omnire_synthetic.render import rasterize, sample_texture, sphere_in_frustum
 from omnire_synthetic.textures import MAT, build_textures, sky_color
 from omnire_synthetic.world import (
     LIDAR_HEIGHT,
@@ -102,6 +97,12 @@ class SynthOptions:
     """LiDAR beam elevation range (degrees)."""
     lidar_azimuth_step_deg: float = 0.4
     """LiDAR azimuth resolution (degrees)."""
+    lidar_max_range: float = 120.0
+    """LiDAR max range (m): farther surfaces return nothing."""
+    lidar_min_range: float = 0.3
+    """LiDAR min range (m): nearer surfaces return nothing."""
+    lidar_grazing_drop_deg: float = 85.0
+    """LiDAR rays meeting a surface further than this from its normal (degrees) return nothing."""
     presence_radius: float = 80.0
     """Actors are annotated in frames where they are within this distance (m) of the ego."""
     write_depth: bool = True
@@ -232,9 +233,10 @@ def _generate(out: str | Path, preset: str, opts: SynthOptions, progress, t_star
     pose_dir.mkdir(exist_ok=True)
 
     actor_cat = np.array(["static"] + [CATEGORY[a.kind] for a in actors])
-    pattern = LidarPattern(np.linspace(*opts.lidar_elevation_deg, opts.lidar_beams), opts.lidar_azimuth_step_deg)
-    ray_dirs, beam_ids = pattern.directions()
-    refl = torch.from_numpy(refl_np)
+    lidar_spec = LidarSpec(
+        BeamModel(np.linspace(*opts.lidar_elevation_deg, opts.lidar_beams), opts.lidar_azimuth_step_deg,
+                  opts.lidar_max_range, opts.lidar_min_range, "synthetic"),
+        refl_np, opts.lidar_grazing_drop_deg)
     lidar_counts = []
     t_render = t_lidar = t_write = 0.0
 
@@ -292,30 +294,19 @@ def _generate(out: str | Path, preset: str, opts: SynthOptions, progress, t_star
                 np.save(out / "depth" / f"{stem}.npy", r.depth.numpy().astype(np.float32))
             t_write += time.perf_counter() - t1
 
-        # LiDAR: exact first hits from the sensor origin.
+        # LiDAR: first hits of every beam x azimuth ray, ray-traced (omnire_synthetic.lidar).
         t0 = time.perf_counter()
         sensor = ego[t] @ lidar_to_ego
-        v_s = _to_frame(fm.mesh.verts, sensor)
-        cull = None
-        if actors:
-            centres, radii = _object_spheres(actors, t, np.linalg.inv(sensor))
-            cull = CullGroups(torch.arange(0, static.faces.shape[0]), centres, radii,
-                              [torch.arange(int(obj_ranges[k + 1]), int(obj_ranges[k + 2])) for k in range(len(actors))])
-        rng_, face_l, _ = raycast_via_id_buffer(v_s, faces_t, ray_dirs, opts.lidar_elevation_deg, cull=cull,
-                                                exact_groups=None if cull is None else cull.faces_of)
-        ok = torch.isfinite(rng_).numpy()
-        p_s = ray_dirs[ok] * rng_.numpy()[ok, None]  # (N, 3) sensor frame
-        fl = face_l[torch.from_numpy(ok)]
-        tri = v_s[faces_t[fl]]
-        n = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        n = (n / n.norm(dim=1, keepdim=True).clamp(min=1e-12)).numpy()
-        cosang = np.abs((n * ray_dirs[ok]).sum(1))
-        intensity = refl[mat[fl]].numpy() * (0.3 + 0.7 * cosang)  # (N,) in [0, 1]
+        sweep = cast_sweep(fm.mesh.verts, fm.mesh.faces, fm.mesh.mat, sensor, lidar_spec)
+        ok = sweep.returned
+        p_s = sweep.points_sensor()  # (N, 3) sensor frame
+        fl = torch.from_numpy(sweep.face[ok])
+        intensity = sweep.intensity[ok].astype(np.float64)  # (N,) in [0, 1]
         lidar_counts.append(int(ok.sum()))
         t_lidar += time.perf_counter() - t0
         t1 = time.perf_counter()
         p_world = p_s @ sensor[:3, :3].T + sensor[:3, 3]
-        _write_lidar(out, t, opts.style, p_world, intensity, beam_ids[ok], ego[t], sensor, obj[fl].numpy(),
+        _write_lidar(out, t, opts.style, p_world, intensity, sweep.beam[ok], ego[t], sensor, obj[fl].numpy(),
                      mat[fl].numpy(), actors, times)
         # Poses of this frame.
         if opts.style == "nuscenes":

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from omnire_body import lbs, load_template
@@ -14,7 +15,9 @@ from omnire.plugins import load_plugins
 from omnire_synthetic.generate import SynthOptions, generate
 from omnire_synthetic.images import read_image
 from omnire_synthetic.meshes import quad
-from omnire_synthetic.render import rasterize, raycast_via_id_buffer
+from omnire.data.scene import BeamModel
+from omnire_synthetic.lidar import GRAZING, NOTHING_HIT, OUT_OF_RANGE, LidarSpec, cast_sweep
+from omnire_synthetic.render import rasterize
 from omnire_synthetic.world import PRESETS, build_actors, ego_trajectory
 
 TINY = dict(frames=8, width=72, height=48)
@@ -47,17 +50,72 @@ def test_rasterizer_exact_depth_and_near_clipping():
     torch.testing.assert_close(r.bary.sum(-1), torch.ones(48, 64))
 
 
-def test_lidar_raycast_hits_plane_exactly():
-    ground = quad([(-80, -80, -2.0), (80, -80, -2.0), (80, 80, -2.0), (-80, 80, -2.0)], 0, (1, 1), nu=8, nv=8)
-    el = np.deg2rad(np.array([-20.0, -10.0]))
-    az = np.deg2rad(np.arange(0, 360, 3.0))
-    A, E = np.meshgrid(az, el)
-    dirs = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
-    rng, face, _ = raycast_via_id_buffer(torch.from_numpy(ground.verts.astype(np.float32)),
-                                         torch.from_numpy(ground.faces), dirs, (-25.0, 5.0), face_width=128)
-    expect = 2.0 / -dirs[:, 2]
-    assert torch.isfinite(rng).all()
-    np.testing.assert_allclose(rng.numpy(), expect, rtol=1e-4)
+SENSOR_HEIGHT = 1.9
+
+
+def _sensor(height: float = SENSOR_HEIGHT) -> np.ndarray:
+    pose = np.eye(4)
+    pose[2, 3] = height
+    return pose
+
+
+def _ground(half: float = 500.0):
+    return quad([(-half, -half, 0.0), (half, -half, 0.0), (half, half, 0.0), (-half, half, 0.0)], 0, (1, 1))
+
+
+def test_lidar_cast_ground_plane_exact_ranges_and_drops():
+    """Ground plane 1.9 m below the sensor: range = 1.9 / sin(-elevation) exactly; rays
+    above the horizon hit nothing; beyond max range or grazing rays drop."""
+    model = BeamModel(np.array([-25.0, -10.0, -3.0, -0.5, 5.0]), 1.0, 100.0, 0.3)
+    g = _ground()
+    sweep = cast_sweep(g.verts, g.faces, np.zeros(len(g.faces), np.int64), _sensor(), LidarSpec(model, np.array([0.8]), 82.0))
+    el = model.elevations_deg[sweep.beam]
+    expect = SENSOR_HEIGHT / np.sin(np.deg2rad(-el))  # metres along the ray (inf above the horizon)
+    incidence = 90.0 + el  # from the plane's normal
+    returned = (el < 0) & (expect <= 100.0) & (incidence <= 82.0)
+    np.testing.assert_array_equal(sweep.returned, returned)
+    np.testing.assert_allclose(sweep.range[returned], expect[returned], rtol=1e-12)
+    assert (sweep.reason[el > 0] == NOTHING_HIT).all()
+    assert (sweep.reason[el == -0.5] == OUT_OF_RANGE).all()  # 218 m away
+    assert (sweep.reason[el == -3.0] == GRAZING).all()  # 87 degrees from the normal
+    cos = np.cos(np.deg2rad(incidence[returned]))
+    np.testing.assert_allclose(sweep.intensity[returned], 0.8 * (0.3 + 0.7 * cos), rtol=1e-6)
+    assert np.isnan(sweep.intensity[~returned]).all()
+    pts = sweep.points_sensor()
+    np.testing.assert_allclose(pts[:, 2], -SENSOR_HEIGHT, atol=1e-12)
+
+
+def test_lidar_cast_box_at_known_distance():
+    """A 4 m cube whose near face is 10 m ahead, on the ground: the level beam meets the face
+    at x = 10 exactly (range 10 / cos(azimuth)), its material's reflectivity; the sensor pose
+    moves and turns the whole sweep."""
+    from omnire_synthetic.meshes import Mesh
+
+    cube = Mesh.concat([
+        quad([(10, -2, 0), (10, 2, 0), (10, 2, 4), (10, -2, 4)], 1, (1, 1)),  # near face, material 1
+        quad([(14, -2, 0), (14, 2, 0), (14, 2, 4), (14, -2, 4)], 1, (1, 1)),
+        quad([(10, -2, 4), (14, -2, 4), (14, 2, 4), (10, 2, 4)], 1, (1, 1)),
+    ])
+    g = _ground()
+    verts = np.concatenate([g.verts, cube.verts])
+    faces = np.concatenate([g.faces, cube.faces + len(g.verts)])
+    mat = np.concatenate([g.mat, cube.mat])
+    model = BeamModel(np.array([0.0, -20.0]), 0.5, 120.0)
+    spec = LidarSpec(model, np.array([0.2, 0.9]), 89.0)
+    # Sensor 5 m behind the origin and turned by 90 degrees: the box lies along its -y.
+    pose = _sensor()
+    pose[:3, :3] = [[0, 1, 0], [-1, 0, 0], [0, 0, 1]]
+    pose[:3, 3] = [-5.0, 0.0, SENSOR_HEIGHT]
+    sweep = cast_sweep(verts, faces, mat, pose, spec)
+    level = (sweep.beam == 0) & sweep.returned
+    az = np.deg2rad(sweep.column * 0.5)
+    d_world = sweep.direction @ pose[:3, :3].T
+    on_face = level & (d_world[:, 0] > 0) & (np.abs(15.0 * d_world[:, 1]) < (2.0 - 1e-6) * d_world[:, 0])
+    assert on_face.sum() == 31  # |y| < 2 at x = 15 m: azimuths within 7.6 degrees, 0.5-degree steps
+    np.testing.assert_allclose(sweep.range[on_face], 15.0 / np.abs(np.sin(az[on_face])), rtol=1e-12)
+    assert (sweep.face[on_face] >= len(g.faces)).all()
+    np.testing.assert_allclose(sweep.intensity[on_face], 0.9 * (0.3 + 0.7 * d_world[on_face, 0]), rtol=1e-6)
+    assert not (level & ~on_face).any()  # the level beam meets nothing else (ground is below it)
 
 
 def test_generation_is_deterministic(tmp_path):
@@ -175,3 +233,32 @@ def test_output_folder_rules(tmp_path):
     assert (out / "extrinsics" / "0.txt").is_file()
     generate(out, "empty", SynthOptions(frames=2, width=16, height=12, style="pandaset"))
     assert not (out / "extrinsics" / "0.txt").exists() and (out / "extrinsics" / "000_0.txt").is_file()
+
+
+def test_missing_returns_recovered_from_a_ray_traced_street():
+    """omnire.beams on a ray-traced sweep of the urban street (buildings, cars, sky): the
+    returns alone give back each one's beam, the azimuth step, and the range image whose
+    "no return" cells are exactly the rays the caster dropped (sky, range, grazing)."""
+    from omnire.beams import assign_beams, estimate_azimuth_resolution, range_image, spherical
+    from omnire_synthetic.textures import build_textures
+    from omnire_synthetic.world import LIDAR_HEIGHT, build_static
+
+    spec = PRESETS["urban"]
+    times = np.arange(2) / 10.0
+    ego = ego_trajectory(spec, times)
+    static = build_static(spec, np.random.default_rng(0), -40.0, 160.0)
+    model = BeamModel(np.linspace(-25.0, 10.0, 32), 0.4, 60.0, 0.3)
+    sensor = ego[1].copy()
+    sensor[2, 3] += LIDAR_HEIGHT
+    sweep = cast_sweep(static.verts, static.faces, static.mat, sensor, LidarSpec(model, build_textures(0)[1]))
+    ok = sweep.returned
+    assert 0.3 < ok.mean() < 0.95 and {NOTHING_HIT, OUT_OF_RANGE, GRAZING} <= set(np.unique(sweep.reason))
+    r, az, el = spherical(sweep.points_sensor())
+    np.testing.assert_allclose(r, sweep.range[ok], rtol=1e-9)
+    beams = assign_beams(el, model)
+    np.testing.assert_array_equal(beams, sweep.beam[ok])
+    assert estimate_azimuth_resolution(az, beams) == pytest.approx(0.4, abs=1e-6)
+    image = range_image(r, az, beams, model)
+    assert image.collisions == 0
+    np.testing.assert_array_equal(image.returned, ok.reshape(model.num_beams, model.num_azimuths))
+    np.testing.assert_allclose(image.range[image.returned], sweep.range[ok], rtol=1e-6)
