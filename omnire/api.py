@@ -27,6 +27,7 @@ from omnire.geometry import (
     invert_se3,
     quat_multiply,
     quat_to_rotmat,
+    quat_to_se3,
     rot_z,
     rotmat_to_axis_angle,
     rotmat_to_quat,
@@ -96,6 +97,7 @@ from omnire.data.dataparser import (
     loaded_camera,
     loaded_intrinsics,
     majority_label,
+    nearest_index,
     require_files,
     resample_track,
 )
@@ -126,13 +128,13 @@ __all__ = [
     "far_shell", "first_pose_world", "gaussian_reach", "image_size", "frame_blend", "frame_range", "holdout_split", "hookimpl", "in_frustum",
     "init_background_params", "init_gaussian_params", "interpolate_poses", "interpolate_track", "invert_se3",
     "knn_scales", "lidar_points_for_init", "points_in_box", "positional_encoding", "quat_multiply",
-    "quat_to_rotmat", "rgb_to_sh0", "rot_z", "rotmat_to_axis_angle", "rotmat_to_quat", "slerp_rotmats",
+    "quat_to_rotmat", "quat_to_se3", "rgb_to_sh0", "rot_z", "rotmat_to_axis_angle", "rotmat_to_quat", "slerp_rotmats",
     "to_tensor", "track_displacement", "train_frame_bracket", "transform_instances", "usable_track", "user_cache_dir",
     "placed_output", "Placement",
     "visible_in_cameras", "voxel_downsample", "write_png",
     # Shared by dataset readers (dataparsers).
     "STATIONARY_THRESHOLD", "MaxTrackGap", "hold_absent_poses", "is_stationary", "loaded_camera",
-    "loaded_intrinsics", "majority_label", "read_image", "require_files", "resample_track", "thin_points",
+    "loaded_intrinsics", "majority_label", "nearest_index", "read_image", "require_files", "resample_track", "thin_points",
     # LiDAR beams (docs/lidar.md)
     "BeamModel", "RangeImage", "assign_beams", "estimate_azimuth_resolution", "estimate_elevations",
     "points_in_sensor_frame", "range_image", "spherical",

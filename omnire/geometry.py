@@ -194,6 +194,18 @@ def rot_z(angle: torch.Tensor) -> torch.Tensor:
 
 
 @numpy_compatible
+def quat_to_se3(q: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """(..., 4) wxyz rotations (normalised here, as in :func:`quat_to_rotmat`) and (..., 3)
+    translations -> (..., 4, 4) rigid transforms x -> R(q) x + t."""
+    R = quat_to_rotmat(q)
+    out = torch.zeros(*R.shape[:-2], 4, 4, dtype=R.dtype, device=R.device)
+    out[..., :3, :3] = R
+    out[..., :3, 3] = t
+    out[..., 3, 3] = 1
+    return out
+
+
+@numpy_compatible
 def invert_se3(T: torch.Tensor) -> torch.Tensor:
     """(..., 4, 4) rigid transform -> its inverse."""
     R, t = T[..., :3, :3], T[..., :3, 3:]

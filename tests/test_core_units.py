@@ -203,3 +203,20 @@ def test_rotmat_to_quat_matches_kornia_on_every_branch_with_gradients():
     assert rotmat_to_quat(np.eye(3)).tolist() == [1.0, 0.0, 0.0, 0.0]
     assert rotmat_to_quat(R.detach().reshape(5, 81, 3, 3)).shape == (5, 81, 4)
     assert bool(torch.isnan(rotmat_to_quat(torch.full((3, 3), float("nan")))).all())
+
+
+def test_quat_to_se3_against_scipy():
+    """A point mapped by the 4x4 is scipy's rotation (scalar-last quaternion) plus the translation,
+    for batches and for quaternions of any norm (normalised, as quat_to_rotmat does)."""
+    from scipy.spatial.transform import Rotation
+
+    from omnire.geometry import quat_to_se3
+
+    rng = np.random.default_rng(5)
+    q, t, p = rng.normal(size=(9, 4)), rng.normal(size=(9, 3)), rng.normal(size=(9, 3))
+    T = quat_to_se3(q, t)
+    assert T.shape == (9, 4, 4) and T.dtype == np.float64 and np.array_equal(T[:, 3], np.tile([0, 0, 0, 1.0], (9, 1)))
+    expected = Rotation.from_quat(q[:, [1, 2, 3, 0]]).apply(p) + t
+    assert np.allclose(np.einsum("nij,nj->ni", T[:, :3, :3], p) + T[:, :3, 3], expected, atol=1e-12)
+    single = quat_to_se3(np.array([1.0, 0.0, 0.0, 0.0]), np.array([1.0, 2.0, 3.0]))
+    assert np.array_equal(single[:3, :3], np.eye(3)) and single[:3, 3].tolist() == [1.0, 2.0, 3.0]

@@ -13,6 +13,7 @@ from omnire.api import (
     is_stationary,
     loaded_intrinsics,
     majority_label,
+    nearest_index,
     resample_track,
     rot_z,
     thin_points,
@@ -76,6 +77,18 @@ def test_is_stationary_is_the_net_motion_of_the_medians():
         assert is_stationary(c, net + 1e-9) and not is_stationary(c, net)
 
 
+def test_nearest_index_matches_brute_force():
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 7, 50):
+        times = np.sort(rng.choice(10_000, n, replace=False)).astype(np.int64)
+        query = rng.integers(-500, 10_500, 200)
+        query[:n] = times  # exact hits
+        query[n:2 * n - 1] = (times[:-1] + times[1:]) // 2 if n > 1 else query[n:2 * n - 1]  # (near-)ties
+        brute = np.array([int(np.argmin(np.abs(times - q))) for q in query])  # argmin: the earlier on ties
+        assert np.array_equal(nearest_index(times, query), brute)
+    assert nearest_index(np.array([0.0, 10.0]), np.array([5.0])).tolist() == [0]  # an exact tie: the earlier
+
+
 def test_majority_label_ties_go_to_the_first_name():
     assert majority_label(["Car", "Van", "Car"]) == "Car"
     assert majority_label(["Van", "Car", "Car", "Van"]) == "Car"
@@ -111,7 +124,7 @@ def test_shared_option_checks():
     LogDataparserConfig().check()
 
 
-@pytest.mark.parametrize("reader", ["kitti", "nuscenes", "argoverse2", "waymo", "pandaset", "processed"])
+@pytest.mark.parametrize("reader", ["kitti", "nuscenes", "nuplan", "argoverse2", "waymo", "pandaset", "processed"])
 def test_bad_scale_is_one_line_from_every_reader(reader, tmp_path, capsys):
     run_case(f"{reader} --scale 0", ["train", "3dgs", reader, "--data", str(tmp_path), "--scale", "0",
                                      "--trainer.output-dir", str(tmp_path / "runs")], capsys, [tmp_path],

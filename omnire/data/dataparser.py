@@ -1,6 +1,7 @@
 """Base configs and class for dataparsers (dataset readers), and what every reader does the
-same way: option checks, frame selection, the world anchor, camera sizes and intrinsics at the
-loaded scale, tracks resampled to the frames, the stationary test, the scene's hold-out split.
+same way: option checks, frame selection, the sample nearest in time, the world anchor, camera
+sizes and intrinsics at the loaded scale, tracks resampled to the frames, the stationary test,
+the scene's hold-out split.
 """
 from __future__ import annotations
 
@@ -154,6 +155,18 @@ def first_pose_world(ego_to_source: np.ndarray) -> np.ndarray:
     world_to_source[:3, :3] = rot_z(np.array(yaw))
     world_to_source[:3, 3] = ego_to_source[:3, 3]
     return np.linalg.inv(world_to_source)
+
+
+def nearest_index(times: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Index (Q,) into increasing ``times`` (N,), N >= 1, of the value nearest each of
+    ``query`` (Q,) (same unit); a tie takes the earlier one. Readers pick, per frame, the
+    image or sweep nearest in time with it."""
+    times, query = np.asarray(times), np.asarray(query)
+    if len(times) == 1:
+        return np.zeros(len(query), dtype=np.int64)
+    i = np.searchsorted(times, query).clip(1, len(times) - 1)
+    earlier = np.abs(query - times[i - 1]) <= np.abs(times[i] - query)
+    return np.where(earlier, i - 1, i)
 
 
 def require_files(paths: Sequence[Path], what: str, error: Optional[type] = None) -> None:

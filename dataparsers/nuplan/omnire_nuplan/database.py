@@ -29,7 +29,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from omnire.api import SceneDataError
+from omnire.api import SceneDataError, quat_to_se3
 
 
 class NuPlanDataError(SceneDataError):
@@ -238,16 +238,12 @@ def lookup(table_rows: dict[str, Row], row: Row, column: str, table: str) -> Row
 
 
 def pose(translation: np.ndarray, quaternion_wxyz: np.ndarray, row: Row, column: str) -> np.ndarray:
-    """(4, 4) from a translation (3,) and a unit quaternion (w, x, y, z) (4,)."""
-    from omnire.api import quat_to_rotmat
-
+    """(4, 4) from a translation (3,) and a unit quaternion (w, x, y, z) (4,) of ``row``
+    (``column`` names the quaternion's column(s) in the error)."""
     if abs(np.linalg.norm(quaternion_wxyz) - 1.0) > 1e-3:
         raise NuPlanDataError(f"{row.db.path}: table {row.table} row {row.token}: column {column} = "
                               f"{quaternion_wxyz.tolist()} is not a unit quaternion (w, x, y, z)")
-    T = np.eye(4)
-    T[:3, :3] = quat_to_rotmat(quaternion_wxyz)
-    T[:3, 3] = translation
-    return T
+    return quat_to_se3(quaternion_wxyz, translation)
 
 
 def raw_tokens(rows: Iterable[Row], column: str = "token") -> list[Any]:

@@ -43,7 +43,9 @@ every second lidar_pc, 10 Hz, ziyc/drivestudio ``datasets/nuplan/nuplan_preproce
 starting at the one of the two interleaved phases whose sweeps lie nearest the images, as it
 does). Each camera takes, per frame, its image nearest in time (at most
 ``--max-camera-offset`` away) with that image's own timestamp and ego pose. Boxes come from
-the lidar_pc of each frame (nuPlan boxes every lidar_pc: no interpolation).
+the lidar_pc of each frame (nuPlan boxes every lidar_pc, so every frame has its own; by
+default, ``--max-track-gap 0``, a frame without a box of a track leaves the actor absent
+there, as in the reference's preprocessing; a positive gap interpolates across such frames).
 """
 from __future__ import annotations
 
@@ -63,9 +65,14 @@ from omnire.api import (
     SceneData,
     first_pose_world,
     frame_range,
-    holdout_split,
     image_size,
+    is_stationary,
+    loaded_camera,
+    nearest_index,
+    require_files,
+    resample_track,
     rot_z,
+    thin_points,
 )
 from omnire_nuplan.database import (
     LogDatabase,
@@ -85,21 +92,12 @@ ATTRIBUTION = (
     '"nuPlan: A closed-loop ML-based planning benchmark for autonomous vehicles", Caesar et al., 2021; nuPlan by '
     "Motional, CC BY-NC-SA 4.0 (non-commercial use; nuPlan Terms of Use)."
 )
-_LIDAR_SEED = 0
 
 
 def category_of(name: str) -> str:
     """nuPlan category name (vehicle, bicycle, pedestrian, traffic_cone, barrier, czone_sign,
     generic_object) -> omnire actor category."""
     return {"vehicle": "vehicle", "pedestrian": "human", "bicycle": "cyclist"}.get(name, "other")
-
-
-def nearest_index(times: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """Index into increasing ``times`` (N,) of the value nearest each ``query`` (Q,) (ties: earlier)."""
-    i = np.searchsorted(times, query).clip(1, max(len(times) - 1, 1))
-    if len(times) == 1:
-        return np.zeros(len(query), dtype=np.int64)
-    return np.where(np.abs(query - times[i - 1]) <= np.abs(times[i] - query), i - 1, i)
 
 
 def box_to_global(row: Row) -> np.ndarray:
@@ -166,39 +164,22 @@ class NuPlanDataparser(Dataparser):
             cameras = index(db.rows("camera"))
             cams = [self._camera(name, cam_imgs[name], cameras, ego_of, world, blobs, db_path) for name in names]
             lidar = self._lidar(db, frame_pcs, ego_frames, world, blobs) if cfg.load_lidar else None
-            tracks = self._tracks(db, frame_pcs, world)
-        F = len(frame_pcs)
-        train, test = holdout_split(F, cfg.holdout_every)
-        return SceneData(
-            name=f"nuplan_{db_path.stem}",
-            cameras=cams,
-            frame_timestamps=frame_us * 1e-6,
-            source_frames=np.array([phase + cfg.frame_step * i for i in rng], dtype=np.int64),
-            train_frames=train,
-            test_frames=test,
-            lidar=lidar,
-            tracks=tracks,
-            ego_poses=world[None] @ ego_frames,
-            attribution=ATTRIBUTION,
-        ).validate()
+            tracks = self._tracks(db, frame_pcs, frame_us, world)
+        source_frames = np.array([phase + cfg.frame_step * i for i in rng], dtype=np.int64)
+        return self.build_scene(f"nuplan_{db_path.stem}", cams, frame_us * 1e-6, source_frames, lidar=lidar,
+                                tracks=tracks, ego_poses=world[None] @ ego_frames, attribution=ATTRIBUTION)
 
     # -- options and files ------------------------------------------------------------------
     def _check_options(self) -> None:
         cfg = self.config
-        if not cfg.scale > 0:
-            raise ConfigError(f"scale: {cfg.scale}, expected a positive number")
+        cfg.check()
         if cfg.frame_step < 1:
             raise ConfigError(f"frame_step: {cfg.frame_step}, expected >= 1 (1 = every 20 Hz lidar_pc, 2 = 10 Hz)")
         if not cfg.max_camera_offset >= 0:
             raise ConfigError(f"max_camera_offset: {cfg.max_camera_offset}, expected seconds >= 0")
-        if cfg.max_lidar_points_per_frame < 0:
-            raise ConfigError(f"max_lidar_points_per_frame: {cfg.max_lidar_points_per_frame}, expected >= 0 "
-                              "(0 keeps all)")
         bad = [c for c in cfg.cameras if c not in CAMERAS]
         if bad:
             raise ConfigError(f"cameras: {bad} are not nuPlan cameras; choose from {list(CAMERAS)}")
-        if len(set(cfg.cameras)) != len(cfg.cameras):
-            raise ConfigError(f"cameras: {list(cfg.cameras)} lists a camera twice")
 
     def _database(self) -> Path:
         data = Path(self.config.data)
@@ -282,36 +263,20 @@ class NuPlanDataparser(Dataparser):
                 raise first.error(col, "a positive whole number of pixels")
             size.append(int(v))
         width, height = size
-        paths = []
-        for r in imgs:
-            path = blobs / r.text("filename_jpg")
-            if not path.is_file():
-                raise NuPlanFileMissing(f"{path}: missing image blob of {name} (table image row {r.token} column "
-                                        "filename_jpg; is --sensor-blobs the nuPlan sensor_blobs folder?)")
-            paths.append(path)
+        paths = [blobs / r.text("filename_jpg") for r in imgs]
+        require_files(paths, f"image blob of {name} (table image, column filename_jpg; is --sensor-blobs the nuPlan "
+                      "sensor_blobs folder?)", NuPlanFileMissing)
         w_disk, h_disk = image_size(paths[0])
         if (w_disk, h_disk) != (width, height):
             raise NuPlanDataError(f"{paths[0]}: image is {w_disk}x{h_disk}, but table camera row {first.token} says "
                                   f"width x height = {width}x{height}")
-        w_out, h_out = max(1, round(width * self.config.scale)), max(1, round(height * self.config.scale))
-        sx, sy = w_out / width, h_out / height
-        # K is in the integer-pixel-centre convention (module docstring): +0.5 px, then scale.
-        K = np.array([[K0[0, 0] * sx, K0[0, 1] * sx, (K0[0, 2] + 0.5) * sx],
-                      [0.0, K0[1, 1] * sy, (K0[1, 2] + 0.5) * sy],
-                      [0.0, 0.0, 1.0]])
         c2e = {c.token: pose(c.pickled("translation", (3,)), c.pickled("rotation", (4,)), c, "rotation") for c in cal}
         c2w = np.stack([world @ ego_of(r) @ c2e[c.token] for r, c in zip(imgs, cal)])  # (F, 4, 4) OpenCV cam -> world
-        return CameraSequence(
-            name=name,
-            width=w_out,
-            height=h_out,
-            intrinsics=K,
-            cam_to_world=c2w,
-            image_paths=paths,
-            timestamps=np.array([r.integer("timestamp") for r in imgs], dtype=np.int64) * 1e-6,
-            distortion=dist if np.any(dist != 0) else None,
-            extras={"image_token": np.array([r.token for r in imgs])},
-        )
+        # K centres pixels at integer coordinates (module docstring): +0.5 px, then the scale.
+        return loaded_camera(name, paths, K0, (width, height), self.config.scale, "integer", cam_to_world=c2w,
+                             timestamps=np.array([r.integer("timestamp") for r in imgs], dtype=np.int64) * 1e-6,
+                             distortion=dist if np.any(dist != 0) else None,
+                             extras={"image_token": np.array([r.token for r in imgs])})
 
     def _lidar(self, db: LogDatabase, frame_pcs: list[Row], ego_frames: np.ndarray, world: np.ndarray,
                blobs: Path) -> LidarSweeps:
@@ -331,11 +296,7 @@ class NuPlanDataparser(Dataparser):
             xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)  # (N, 3) LiDAR frame
             if not np.isfinite(xyz).all():
                 raise NuPlanDataError(f"{path}: non-finite x, y, z values (table lidar_pc row {pc.token})")
-            n_max = cfg.max_lidar_points_per_frame
-            if 0 < n_max < len(xyz):
-                # Seeded by the sweep timestamp: a frame thins the same way in any frame range.
-                gen = np.random.default_rng((_LIDAR_SEED, pc.integer("timestamp")))
-                xyz = xyz[np.sort(gen.choice(len(xyz), n_max, replace=False))]
+            xyz = thin_points(xyz, cfg.max_lidar_points_per_frame, pc.integer("timestamp"))  # keyed by the sweep
             lidar = lookup(lidars, pc, "lidar_token", "lidar")
             if lidar.token not in to_ego:
                 to_ego[lidar.token] = pose(lidar.pickled("translation", (3,)), lidar.pickled("rotation", (4,)),
@@ -349,9 +310,11 @@ class NuPlanDataparser(Dataparser):
                                     "skips LiDAR")
         return LidarSweeps(points=points, origins=origins)
 
-    def _tracks(self, db: LogDatabase, frame_pcs: list[Row], world: np.ndarray) -> list[ActorTrack]:
+    def _tracks(self, db: LogDatabase, frame_pcs: list[Row], frame_us: np.ndarray,
+                world: np.ndarray) -> list[ActorTrack]:
+        """One track per track token with a box on a loaded frame's lidar_pc; frames between
+        its boxes at most ``max_track_gap`` apart are interpolated, other frames absent."""
         cfg = self.config
-        F = len(frame_pcs)
         frame_of = {pc.token: j for j, pc in enumerate(frame_pcs)}
         boxes = db.rows_with("lidar_box", "lidar_pc_token", raw_tokens(frame_pcs))
         tracks = index(db.rows_with("track", "token", raw_tokens(boxes, "track_token")))
@@ -363,25 +326,23 @@ class NuPlanDataparser(Dataparser):
         for track_token, rows in sorted(groups.items()):
             track = lookup(tracks, rows[0], "track_token", "track")
             name = lookup(categories, track, "category_token", "category").text("name")
-            poses = np.repeat(np.eye(4)[None], F, axis=0)
-            present = np.zeros(F, dtype=bool)
+            rows.sort(key=lambda b: frame_of[b.ref("lidar_pc_token")])
+            frames = np.array([frame_of[b.ref("lidar_pc_token")] for b in rows])
+            if np.any(np.diff(frames) == 0):
+                k = int(np.flatnonzero(np.diff(frames) == 0)[0])
+                raise NuPlanDataError(f"{db.path}: table lidar_box has two boxes of track {track_token} on "
+                                      f"lidar_pc {frame_pcs[frames[k]].token} (rows {rows[k].token} and "
+                                      f"{rows[k + 1].token})")
             sizes = []
             for b in rows:
-                j = frame_of[b.ref("lidar_pc_token")]
-                if present[j]:
-                    raise NuPlanDataError(f"{db.path}: table lidar_box has two boxes of track {track_token} on "
-                                          f"lidar_pc {frame_pcs[j].token} (rows {b.token} and another)")
-                present[j] = True
-                poses[j] = world @ box_to_global(b)
                 wlh = [b.number("width"), b.number("length"), b.number("height")]
                 if min(wlh) <= 0:
                     raise b.error("width" if wlh[0] <= 0 else "length" if wlh[1] <= 0 else "height",
                                   "a positive size in metres")
                 sizes.append(wlh)
-            first = int(np.flatnonzero(present)[0])
-            poses[~present] = poses[first]  # absent rows are unspecified: keep them finite
-            centres = poses[present, :3, 3]
-            spread = np.linalg.norm(centres - centres[0], axis=1).max()
+            boxes = world[None] @ np.stack([box_to_global(b) for b in rows])  # (K, 4, 4) box -> world
+            poses, present = resample_track(frame_us[frames].astype(np.float64), boxes, frame_us.astype(np.float64),
+                                            cfg.max_track_gap * 1e6)
             out.append(ActorTrack(
                 track_id=track_token,
                 class_name=name,
@@ -389,8 +350,8 @@ class NuPlanDataparser(Dataparser):
                 poses=poses,
                 size=np.asarray(sizes)[:, [1, 0, 2]].max(axis=0),  # (width, length, height) -> (length, width, height)
                 present=present,
-                stationary=bool(spread < cfg.stationary_threshold),
-                extras={"box_tokens": [b.token for b in sorted(rows, key=lambda b: frame_of[b.ref("lidar_pc_token")])]},
+                stationary=is_stationary(poses[present, :3, 3], cfg.stationary_threshold),
+                extras={"box_tokens": [b.token for b in rows]},
             ))
         return out
 
@@ -410,7 +371,5 @@ class NuPlanConfig(LogDataparserConfig):
     """Take every N-th lidar_pc (20 Hz) as a frame: 2 gives the paper's 10 Hz (the camera rate), 1 every sweep."""
     max_camera_offset: float = 0.05
     """A camera's image must lie within this many seconds of its frame's lidar_pc (the devkit's matching window)."""
-    max_lidar_points_per_frame: int = 0
-    """Randomly thin each sweep to at most this many points (seeded by the sweep); 0 keeps all."""
-    stationary_threshold: float = 0.2
-    """Tracks whose box centres stay within this distance (m) of the first are marked stationary."""
+    max_track_gap: float = 0.0
+    """Interpolate a track across frames without its box when the boxes around them are at most this many seconds apart; 0 (nuPlan boxes every lidar_pc, so every frame has its own) leaves the actor absent there, as the reference's preprocessing does."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sqlite3
 import subprocess
 import sys
@@ -14,9 +15,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from omnire.api import first_pose_world
+from omnire.api import first_pose_world, interpolate_poses
 from omnire_nuplan import CAMERAS, NuPlanConfig, category_of, parse_pcd
-from omnire_nuplan.dataparser import nearest_index
 from omnire_nuplan.writer import FIRST_US, LOG, blobs_path, database_path, load_source, write_nuplan
 
 FRAMES = 6
@@ -135,15 +135,26 @@ def test_category_mapping():
                                      "generic_object")] == ["vehicle", "human", "cyclist"] + ["other"] * 4
 
 
-def test_nearest_index_matches_brute_force():
-    rng = np.random.default_rng(3)
-    for n in (1, 2, 7, 50):
-        times = np.sort(rng.choice(10_000, n, replace=False)).astype(np.int64)
-        query = rng.integers(-500, 10_500, 200)
-        query[:n] = times  # exact hits
-        query[n:2 * n - 1] = (times[:-1] + times[1:]) // 2 if n > 1 else query[n:2 * n - 1]  # (near-)ties
-        brute = np.array([int(np.argmin(np.abs(times - q))) for q in query])  # argmin: the earlier on ties
-        assert np.array_equal(nearest_index(times, query), brute)
+def test_max_track_gap_bridges_a_missing_box(synth, tmp_path):
+    """A track's box deleted on one frame's lidar_pc: absent there by default (nuPlan boxes
+    every lidar_pc), interpolated from its neighbours with --max-track-gap."""
+    track = next(t for t in synth.scene.tracks if t.present[:3].all())
+    k = int(np.flatnonzero(track.present)[:2][1])  # its box on frame 1 (present on 0..2)
+    assert k == 1
+    root = tmp_path / "log"
+    shutil.copytree(synth.out, root)
+    conn = sqlite3.connect(database_path(root))
+    conn.execute("DELETE FROM lidar_box WHERE token = ?", (bytes.fromhex(track.extras["box_tokens"][k]),))
+    conn.commit()
+    conn.close()
+    gap = {t.track_id: t for t in parse(root, load_lidar=False).tracks}[track.track_id]
+    assert gap.present.tolist() == [f != 1 and p for f, p in enumerate(track.present)]
+    assert np.array_equal(gap.poses[gap.present], track.poses[gap.present])
+    bridged = {t.track_id: t for t in parse(root, load_lidar=False, max_track_gap=0.25).tracks}[track.track_id]
+    assert np.array_equal(bridged.present, track.present)
+    t = synth.scene.frame_timestamps
+    expected = interpolate_poses(t[[0, 2]], track.poses[[0, 2]], t[1:2])[0]
+    assert np.abs(bridged.poses[1] - expected).max() < 1e-9
 
 
 def test_explicit_sensor_blobs(synth):

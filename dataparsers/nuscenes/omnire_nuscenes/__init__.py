@@ -7,11 +7,10 @@ from omnire_nuscenes.dataparser import (
     NuScenesDataparser,
     category_of,
     frame_targets,
-    nearest,
 )
 from omnire_nuscenes.tables import NuScenesDataError, NuScenesFileMissing, iter_json_array, load_table
 
 __all__ = [
     "ATTRIBUTION", "CAMERAS", "LIDAR", "NuScenesConfig", "NuScenesDataError", "NuScenesDataparser",
-    "NuScenesFileMissing", "category_of", "frame_targets", "iter_json_array", "load_table", "nearest",
+    "NuScenesFileMissing", "category_of", "frame_targets", "iter_json_array", "load_table",
 ]

@@ -46,7 +46,8 @@ import numpy as np
 
 from omnire.api import (
     ActorTrack, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap, SceneData,
-    first_pose_world, frame_range, image_size, is_stationary, loaded_camera, resample_track, thin_points,
+    first_pose_world, frame_range, image_size, is_stationary, loaded_camera, nearest_index, resample_track,
+    thin_points,
 )
 from omnire_nuscenes.tables import (
     NuScenesDataError,
@@ -80,16 +81,6 @@ def category_of(name: str) -> str:
     if name.startswith("vehicle."):
         return "vehicle"
     return "other"  # animal, movable_object.*, static_object.*
-
-
-def nearest(times: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """Index into increasing ``times`` (N,) of the value nearest each ``query`` (Q,); a tie
-    takes the earlier one."""
-    if len(times) == 1:
-        return np.zeros(len(query), dtype=np.int64)
-    i = np.searchsorted(times, query).clip(1, len(times) - 1)
-    earlier = np.abs(query - times[i - 1]) <= np.abs(times[i] - query)
-    return np.where(earlier, i - 1, i)
 
 
 def frame_targets(keyframe_times: np.ndarray, between: int) -> np.ndarray:
@@ -144,7 +135,7 @@ class NuScenesDataparser(Dataparser):
         if np.any(np.diff(key_t) <= 0):
             raise NuScenesDataError(f"{tables / 'sample.json'}: keyframes of scene {scene['name']!r} are not in "
                                     "increasing time order along their 'next' links")
-        chosen = nearest(lidar_t.astype(np.float64), frame_targets(key_t, cfg.interpolate_frames).astype(np.float64))
+        chosen = nearest_index(lidar_t.astype(np.float64), frame_targets(key_t, cfg.interpolate_frames).astype(np.float64))
         chosen = chosen[np.concatenate([[True], np.diff(chosen) != 0])]  # same sweep twice: once
         rng = frame_range(cfg.start_frame, cfg.end_frame, len(chosen), f"nuScenes scene {scene['name']!r}")
         frame_sds = [lidar_sds[i] for i in chosen[rng.start:rng.stop]]
@@ -154,7 +145,7 @@ class NuScenesDataparser(Dataparser):
         for name in cameras:
             recs = by_channel[name]
             t = np.array([int(r["timestamp"]) for r in recs], dtype=np.float64)
-            cam_sds[name] = [recs[i] for i in nearest(t, frame_us.astype(np.float64))]
+            cam_sds[name] = [recs[i] for i in nearest_index(t, frame_us.astype(np.float64))]
         ego_tokens = {r["ego_pose_token"] for r in frame_sds} | {r["ego_pose_token"] for v in cam_sds.values() for r in v}
         ego = {r["token"]: r for r in load_table(tables, "ego_pose", keep=lambda r: r["token"] in ego_tokens)}
 

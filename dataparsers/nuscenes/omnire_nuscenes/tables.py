@@ -15,7 +15,7 @@ from typing import Any, Callable, Iterator, Optional
 
 import numpy as np
 
-from omnire.api import SceneDataError
+from omnire.api import SceneDataError, quat_to_se3
 
 
 class NuScenesDataError(SceneDataError):
@@ -170,14 +170,9 @@ def number_array(rec: dict, field: str, shape: tuple[int, ...], table: str, tabl
 
 def pose_matrix(rec: dict, table: str, tables: Path) -> np.ndarray:
     """(4, 4) from a record's ``translation`` (x, y, z metres) and ``rotation`` (w, x, y, z)."""
-    from omnire.api import quat_to_rotmat
-
     t = number_array(rec, "translation", (3,), table, tables)
     q = number_array(rec, "rotation", (4,), table, tables)
     if abs(np.linalg.norm(q) - 1.0) > 1e-3:
         raise NuScenesDataError(f"{tables / (table + '.json')}: record {rec['token']!r} field 'rotation' = "
                                 f"{rec['rotation']!r} is not a unit quaternion (w, x, y, z)")
-    T = np.eye(4)
-    T[:3, :3] = quat_to_rotmat(q)
-    T[:3, 3] = t
-    return T
+    return quat_to_se3(q, t)

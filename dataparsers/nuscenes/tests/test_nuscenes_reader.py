@@ -17,7 +17,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from omnire.api import ConfigError, interpolate_poses, interpolate_track
+from omnire.api import ConfigError, interpolate_poses, interpolate_track, nearest_index
 from omnire_nuscenes import (
     CAMERAS,
     NuScenesConfig,
@@ -26,7 +26,6 @@ from omnire_nuscenes import (
     category_of,
     frame_targets,
     iter_json_array,
-    nearest,
 )
 from omnire_nuscenes.writer import FIRST_US, LOGFILE, VERSION, token, write_nuscenes
 
@@ -234,8 +233,8 @@ def test_annotation_gap(synth, tmp_path):
 # ---------------------------------------------------------------------------- frame choice
 def test_nearest_and_targets():
     times = np.array([0.0, 10.0, 20.0, 30.0])
-    assert nearest(times, np.array([-5.0, 4.0, 5.0, 6.0, 29.0, 99.0])).tolist() == [0, 0, 0, 1, 3, 3]
-    assert nearest(np.array([7.0]), np.array([1.0, 9.0])).tolist() == [0, 0]
+    assert nearest_index(times, np.array([-5.0, 4.0, 5.0, 6.0, 29.0, 99.0])).tolist() == [0, 0, 0, 1, 3, 3]
+    assert nearest_index(np.array([7.0]), np.array([1.0, 9.0])).tolist() == [0, 0]
     assert frame_targets(np.array([0, 500000, 1000000]), 4).tolist() == [0, 100000, 200000, 300000, 400000, 500000,
                                                                          600000, 700000, 800000, 900000, 1000000]
     assert frame_targets(np.array([0, 500000]), 0).tolist() == [0, 500000]
