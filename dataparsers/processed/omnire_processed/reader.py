@@ -50,18 +50,19 @@ from typing import Literal, Optional, Type
 
 import numpy as np
 
-from omnire.api import image_size
-
-from omnire.data.dataparser import Dataparser, DataparserConfig
-from omnire.data.scene import (
+from omnire.api import (
     ActorTrack,
     CameraSequence,
+    Dataparser,
+    DataparserConfig,
     HumanPoseSequence,
     LidarSweeps,
     SceneData,
     SceneDataError,
     holdout_split,
+    image_size,
 )
+
 from omnire_processed import boxes, formats
 from omnire_processed.formats import LIDAR_LAYOUTS, WAYMO_TO_OPENCV, category_of
 
