@@ -2,6 +2,8 @@
 separate directory (pip), isolation of broken plugins, strict mode, blocking by name."""
 from __future__ import annotations
 
+import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -10,8 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from omnire.plugins import PluginLoadError, load_plugins
+from omnire.plugins import PluginLoadError, PluginSelection, load_plugins
 
+from plugin_site import install_on_path
 from scene_helpers import DEMO_SCENE
 
 OMNIRE = [sys.executable, "-m", "omnire.cli"]
@@ -126,3 +129,39 @@ def test_plugin_method_selected_on_cli_despite_broken_plugin(installed_test_plug
     assert "omnire-test-broken" in out.stderr  # reported, not fatal
     metrics = (tmp_path / "r" / "metrics.jsonl").read_text()
     assert "tiny_tv" in metrics
+
+
+def test_plugin_commands_get_the_cli_plugin_set(tmp_path):
+    """``OMNIRE_DISABLE_PLUGINS`` and ``--strict`` reach a plugin's command: ``omnire synth``
+    writes with the scene writers of the CLI's plugin set (real subprocesses, nothing generated)."""
+    out_dir = tmp_path / "scene"
+    out = run(["synth", "urban", str(out_dir), "--tiny", "--format", "kitti"],
+              env={"OMNIRE_DISABLE_PLUGINS": "omnire-dataparser-kitti"})
+    assert out.returncode == 2 and "unknown scene writer 'kitti'" in out.stderr, out.stderr
+    assert not out_dir.exists()
+
+    site = tmp_path / "site"
+    (tmp_path / "omnire_test_fails").mkdir()
+    (tmp_path / "omnire_test_fails" / "__init__.py").write_text("")
+    (tmp_path / "omnire_test_fails" / "plugin.py").write_text('raise ImportError("broken on purpose")\n')
+    install_on_path(site, tmp_path / "omnire_test_fails", "omnire-test-fails", "fails")
+    env = {"PYTHONPATH": str(site)}
+    out = run(["synth", "urban", str(out_dir), "--tiny", "--format", "nope"], env=env)
+    assert out.returncode == 2 and "omnire-test-fails" in out.stderr and "unknown scene writer 'nope'" in out.stderr
+    out = run(["--strict", "synth", "urban", str(out_dir), "--tiny", "--format", "nope"], env=env)
+    assert out.returncode == 3 and "omnire-test-fails" in out.stderr and "scene writer" not in out.stderr
+    assert not out_dir.exists()
+
+
+def test_plugin_selection_crosses_to_a_worker_process():
+    """What a command hands its worker process (``omnire bench render``) loads the same set."""
+    plugins = load_plugins(disabled={"omnire-dataparser-kitti"})
+    assert plugins.selection == PluginSelection(strict=False, disabled=("omnire-dataparser-kitti",), entry_points=True)
+    code = ("import json, sys; from omnire.api import PluginSelection; "
+            "p = PluginSelection.from_dict(json.loads(sys.argv[1])).load(); "
+            "print(p.selection.strict, 'kitti' in p.dataparsers, 'nuscenes' in p.dataparsers)")
+    strict = dataclasses.replace(plugins.selection, strict=True)
+    out = subprocess.run([sys.executable, "-c", code, json.dumps(strict.as_dict())], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["True", "False", "True"]
