@@ -131,6 +131,17 @@ def test_plugin_method_selected_on_cli_despite_broken_plugin(installed_test_plug
     assert "tiny_tv" in metrics
 
 
+def failing_plugin_site(tmp_path: Path) -> Path:
+    """A directory to put on PYTHONPATH holding the distribution omnire-test-fails, whose
+    plugin module raises on import."""
+    package = tmp_path / "omnire_test_fails"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "plugin.py").write_text('raise ImportError("broken on purpose")\n')
+    install_on_path(tmp_path / "site", package, "omnire-test-fails", "fails")
+    return tmp_path / "site"
+
+
 def test_plugin_commands_get_the_cli_plugin_set(tmp_path):
     """``OMNIRE_DISABLE_PLUGINS`` and ``--strict`` reach a plugin's command: ``omnire synth``
     writes with the scene writers of the CLI's plugin set (real subprocesses, nothing generated)."""
@@ -140,12 +151,7 @@ def test_plugin_commands_get_the_cli_plugin_set(tmp_path):
     assert out.returncode == 2 and "unknown scene writer 'kitti'" in out.stderr, out.stderr
     assert not out_dir.exists()
 
-    site = tmp_path / "site"
-    (tmp_path / "omnire_test_fails").mkdir()
-    (tmp_path / "omnire_test_fails" / "__init__.py").write_text("")
-    (tmp_path / "omnire_test_fails" / "plugin.py").write_text('raise ImportError("broken on purpose")\n')
-    install_on_path(site, tmp_path / "omnire_test_fails", "omnire-test-fails", "fails")
-    env = {"PYTHONPATH": str(site)}
+    env = {"PYTHONPATH": str(failing_plugin_site(tmp_path))}
     out = run(["synth", "urban", str(out_dir), "--tiny", "--format", "nope"], env=env)
     assert out.returncode == 2 and "omnire-test-fails" in out.stderr and "unknown scene writer 'nope'" in out.stderr
     out = run(["--strict", "synth", "urban", str(out_dir), "--tiny", "--format", "nope"], env=env)
@@ -153,15 +159,21 @@ def test_plugin_commands_get_the_cli_plugin_set(tmp_path):
     assert not out_dir.exists()
 
 
-def test_plugin_selection_crosses_to_a_worker_process():
-    """What a command hands its worker process (``omnire bench render``) loads the same set."""
+def test_plugin_selection_crosses_to_a_worker_process(tmp_path):
+    """What a command hands its worker process (``omnire bench render``) loads the same set:
+    disabled plugins stay out, and strict mode makes a broken plugin fatal there too."""
     plugins = load_plugins(disabled={"omnire-dataparser-kitti"})
     assert plugins.selection == PluginSelection(strict=False, disabled=("omnire-dataparser-kitti",), entry_points=True)
     code = ("import json, sys; from omnire.api import PluginSelection; "
             "p = PluginSelection.from_dict(json.loads(sys.argv[1])).load(); "
-            "print(p.selection.strict, 'kitti' in p.dataparsers, 'nuscenes' in p.dataparsers)")
-    strict = dataclasses.replace(plugins.selection, strict=True)
-    out = subprocess.run([sys.executable, "-c", code, json.dumps(strict.as_dict())], capture_output=True, text=True,
-                         timeout=300)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["True", "False", "True"]
+            "print('kitti' in p.dataparsers, 'nuscenes' in p.dataparsers)")
+    env = dict(os.environ, PYTHONPATH=str(failing_plugin_site(tmp_path)))
+
+    def worker(selection: PluginSelection) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", code, json.dumps(selection.as_dict())], capture_output=True,
+                              text=True, env=env, timeout=300)
+
+    out = worker(plugins.selection)
+    assert out.returncode == 0 and out.stdout.split() == ["False", "True"], out.stderr
+    out = worker(dataclasses.replace(plugins.selection, strict=True))
+    assert out.returncode != 0 and "PluginLoadError" in out.stderr and "omnire-test-fails" in out.stderr
