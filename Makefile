@@ -1,6 +1,6 @@
 # Set-up, demo and tests. Everything installs into $(VENV); nothing else is touched.
 #   make demo   create the venv, install torch + omnire + every plugin, train on the demo scene
-#   make test   same install, then the test suite
+#   make test   same install, then the import contracts and the test suite
 # Override TORCH_SPEC for another torch (e.g. TORCH_SPEC="torch==2.5.1"); the default is the
 # CPU build this project is developed against. It is also written to a pip constraint file
 # so that no plugin can pull a different (multi-GB CUDA) torch.
@@ -40,7 +40,10 @@ demo: install
 		--trainer.max-steps $(DEMO_STEPS) --trainer.max-seconds $(DEMO_SECONDS) \
 		--trainer.output-dir outputs/demo $(DEMO_ARGS)
 
+# lint-imports checks the import contracts of pyproject.toml (plugins use the public API,
+# plugin dependencies point one way) before the tests run.
 test: install
+	$(BIN)/lint-imports
 	$(BIN)/python -m pytest
 
 clean-venv:

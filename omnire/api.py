@@ -1,12 +1,15 @@
-"""Everything a plugin author imports: the one public module of the core for plugins.
+"""Everything a plugin author imports: the public module of the core for plugins.
 
 Third-party plugins (node types, dataparsers, rasterizers, losses, methods, commands, pose
-estimators, scene writers) import from here only; docs/plugins.md shows each in use.
+estimators, scene writers, training observers) import from here, and command and benchmark
+authors also from :mod:`omnire.command_api`; no other core module is public (an
+import-linter contract in pyproject.toml keeps plugin packages to these two).
+docs/plugins.md shows each in use.
 """
 from omnire.camera import CULL_SIGMAS, Camera, gaussian_reach, in_frustum, may_be_drawn
 from omnire.config import InstantiateConfig
 from omnire.data.dataparser import Dataparser, DataparserConfig, LogDataparserConfig, first_pose_world, frame_range
-from omnire.data.images import ImageCache, ImageReadError, image_size
+from omnire.data.images import ImageCache, ImageReadError, image_size, read_image
 from omnire.data.scene import (
     CATEGORIES,
     ActorTrack,
@@ -28,18 +31,21 @@ from omnire.geometry import (
     quat_multiply,
     quat_to_rotmat,
     quat_to_se3,
+    rigid,
     rot_z,
     rotmat_to_axis_angle,
     rotmat_to_quat,
     slerp_rotmats,
 )
 from omnire.hookspecs import hookimpl
-from omnire.interpolation import bracket, interpolate_poses, interpolate_track
+from omnire.interpolation import bracket, interpolate_poses, interpolate_rotations, interpolate_track
+from omnire.io import safe_pickle
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
 from omnire.io.cache import user_cache_dir
 from omnire.io.images import write_png
-from omnire.losses import LossContext
+from omnire.losses import LossContext, ssim_map
 from omnire.method import MethodConfig
+from omnire.native import NativeExtension, build_error_line
 from omnire.nn import DeformationMLP, positional_encoding
 from omnire.nodes.actors import (
     ActorNode,
@@ -69,8 +75,19 @@ from omnire.nodes.base import (
     init_gaussian_params,
 )
 from omnire.placement import Placement
+from omnire.plugins import PluginLoadError, Plugins, PluginSelection
 from omnire.pointcloud import colour_from_images, far_shell, knn_scales, points_in_box, to_tensor, voxel_downsample
-from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
+from omnire.rasterization import (
+    ALPHA_THRESHOLD,
+    MAX_ALPHA,
+    TILE_SIZE,
+    TRANSMITTANCE_MIN,
+    RasterInputError,
+    RasterSettings,
+    RenderOutput,
+    Splats,
+    check_raster_inputs,
+)
 from omnire.registry import (
     CommandSpec,
     DataparserSpec,
@@ -83,6 +100,7 @@ from omnire.registry import (
     SceneWriterSpec,
     TrainObserverSpec,
 )
+from omnire.rowsparse import row_sparse
 from omnire.rundir import CheckpointError, RunDirectory, RunDirectoryError
 from omnire.runconfig import TrainConfig, TrainerConfig
 from omnire.runtime import Reconstruction
@@ -101,7 +119,6 @@ from omnire.data.dataparser import (
     require_files,
     resample_track,
 )
-from omnire.data.images import read_image
 from omnire.pointcloud import thin_points
 # LiDAR beams (docs/lidar.md)
 from omnire.beams import (
@@ -138,4 +155,7 @@ __all__ = [
     # LiDAR beams (docs/lidar.md)
     "BeamModel", "RangeImage", "assign_beams", "estimate_azimuth_resolution", "estimate_elevations",
     "points_in_sensor_frame", "range_image", "spherical",
+    "ALPHA_THRESHOLD", "MAX_ALPHA", "TILE_SIZE", "TRANSMITTANCE_MIN", "NativeExtension", "PluginLoadError", "Plugins",
+    "PluginSelection", "build_error_line", "interpolate_rotations", "rigid", "row_sparse", "safe_pickle",
+    "ssim_map",
 ]

@@ -1,7 +1,7 @@
 """``omnire`` entry point: dispatches to the commands in the command registry.
 
 Plugins are loaded when the command runs (never at import), so the CLI always reflects
-what is installed. ``--strict`` anywhere on the line (or OMNIRE_STRICT_PLUGINS=1) makes a
+what is installed, and handed to the command (``CommandSpec.main(argv, plugins)``). ``--strict`` anywhere on the line (or OMNIRE_STRICT_PLUGINS=1) makes a
 broken plugin fatal; otherwise it is reported and skipped. A :class:`~omnire.errors.UserError`
 is printed as one line and exits 2; ``--debug`` shows its traceback too. Other exceptions
 are bugs and keep their traceback.

@@ -214,3 +214,13 @@ def invert_se3(T: torch.Tensor) -> torch.Tensor:
     out[..., :3, 3:] = -R.transpose(-1, -2) @ t
     out[..., 3, 3] = 1
     return out
+
+
+def rigid(R: "np.ndarray | None" = None, t: Any = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """(4, 4) float64 numpy transform from a rotation ``R`` (3, 3) (identity if None) and a
+    translation ``t`` (3,): the builder readers, writers and the scene generator share."""
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    T[:3, 3] = t
+    return T

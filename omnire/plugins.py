@@ -63,15 +63,46 @@ def _env_flag(name: str) -> bool:
     return os.environ.get(name, "").strip().lower() in {"1", "true", "yes", "on"}
 
 
+@dataclasses.dataclass(frozen=True)
+class PluginSelection:
+    """Which plugins a process loads: what ``--strict`` and the ``OMNIRE_*`` variables above
+    decided for the CLI. A command that starts a worker process hands it its
+    ``plugins.selection`` (``as_dict()`` is JSON-ready) so that the worker loads the same
+    set (:meth:`load`), strict mode and disabled plugins included. Plugin modules passed to
+    :func:`load_plugins` as objects (``extra_modules``) cannot cross a process boundary."""
+
+    strict: bool = False
+    disabled: tuple[str, ...] = ()
+    """Plugin or distribution names skipped, sorted."""
+    entry_points: bool = True
+    """Whether entry-point plugins are loaded (False: the core's built-ins only)."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"strict": self.strict, "disabled": list(self.disabled), "entry_points": self.entry_points}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "PluginSelection":
+        return cls(bool(data["strict"]), tuple(sorted(data["disabled"])), bool(data["entry_points"]))
+
+    def load(self) -> "Plugins":
+        """Load this selection in this process (see :func:`load_plugins`)."""
+        return load_plugins(strict=self.strict, disabled=set(self.disabled), entry_points=self.entry_points)
+
+
 class Plugins:
     """All registries (one attribute per :data:`~omnire.registry.REGISTRY_KINDS` entry, e.g.
-    ``plugins.node_types``), filled by the loaded plugins. Create with :func:`load_plugins`."""
+    ``plugins.node_types``), filled by the loaded plugins. Create with :func:`load_plugins`;
+    commands receive the CLI's (``CommandSpec.main(argv, plugins)``) and never load their own."""
 
-    def __init__(self, strict: bool = False) -> None:
+    def __init__(self, selection: PluginSelection = PluginSelection()) -> None:
         self._registries: dict[str, Registry[Any]] = {k.attr: Registry(k.label) for k in REGISTRY_KINDS}
         self.loaded: list[tuple[str, Provenance]] = []
         self.failures: list[PluginFailure] = []
-        self.strict = strict
+        self.selection = selection
+
+    @property
+    def strict(self) -> bool:
+        return self.selection.strict
 
     def __getattr__(self, attr: str) -> Registry[Any]:
         registries = self.__dict__.get("_registries", {})
@@ -137,7 +168,7 @@ def load_plugins(
     if entry_points is None:
         entry_points = not _env_flag("OMNIRE_NO_ENTRY_POINTS")
 
-    plugins = Plugins(strict=strict)
+    plugins = Plugins(PluginSelection(bool(strict), tuple(sorted(disabled)), bool(entry_points)))
 
     def fail(name: str, prov: Provenance, stage: str, message: str, tb: str = "") -> None:
         failure = PluginFailure(name, prov, stage, message, tb)

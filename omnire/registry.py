@@ -158,7 +158,9 @@ class MethodSpec:
 @dataclasses.dataclass(frozen=True)
 class CommandSpec:
     """An ``omnire <name>`` sub-command. ``main(argv, plugins)`` runs it and returns an exit
-    code. Names may have several words (``bench raster``): the CLI takes the longest name
+    code; ``plugins`` is the set the CLI loaded (``--strict``, ``OMNIRE_DISABLE_PLUGINS``
+    applied): a command never loads its own, and hands ``plugins.selection`` to any worker
+    process it starts. Names may have several words (``bench raster``): the CLI takes the longest name
     that the command line starts with, and ``omnire bench`` lists the ``bench *`` commands."""
 
     name: str

@@ -2,6 +2,8 @@
 separate directory (pip), isolation of broken plugins, strict mode, blocking by name."""
 from __future__ import annotations
 
+import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -10,8 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from omnire.plugins import PluginLoadError, load_plugins
+from omnire.plugins import PluginLoadError, PluginSelection, load_plugins
 
+from plugin_site import install_on_path
 from scene_helpers import DEMO_SCENE
 
 OMNIRE = [sys.executable, "-m", "omnire.cli"]
@@ -126,3 +129,51 @@ def test_plugin_method_selected_on_cli_despite_broken_plugin(installed_test_plug
     assert "omnire-test-broken" in out.stderr  # reported, not fatal
     metrics = (tmp_path / "r" / "metrics.jsonl").read_text()
     assert "tiny_tv" in metrics
+
+
+def failing_plugin_site(tmp_path: Path) -> Path:
+    """A directory to put on PYTHONPATH holding the distribution omnire-test-fails, whose
+    plugin module raises on import."""
+    package = tmp_path / "omnire_test_fails"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "plugin.py").write_text('raise ImportError("broken on purpose")\n')
+    install_on_path(tmp_path / "site", package, "omnire-test-fails", "fails")
+    return tmp_path / "site"
+
+
+def test_plugin_commands_get_the_cli_plugin_set(tmp_path):
+    """``OMNIRE_DISABLE_PLUGINS`` and ``--strict`` reach a plugin's command: ``omnire synth``
+    writes with the scene writers of the CLI's plugin set (real subprocesses, nothing generated)."""
+    out_dir = tmp_path / "scene"
+    out = run(["synth", "urban", str(out_dir), "--tiny", "--format", "kitti"],
+              env={"OMNIRE_DISABLE_PLUGINS": "omnire-dataparser-kitti"})
+    assert out.returncode == 2 and "unknown scene writer 'kitti'" in out.stderr, out.stderr
+    assert not out_dir.exists()
+
+    env = {"PYTHONPATH": str(failing_plugin_site(tmp_path))}
+    out = run(["synth", "urban", str(out_dir), "--tiny", "--format", "nope"], env=env)
+    assert out.returncode == 2 and "omnire-test-fails" in out.stderr and "unknown scene writer 'nope'" in out.stderr
+    out = run(["--strict", "synth", "urban", str(out_dir), "--tiny", "--format", "nope"], env=env)
+    assert out.returncode == 3 and "omnire-test-fails" in out.stderr and "scene writer" not in out.stderr
+    assert not out_dir.exists()
+
+
+def test_plugin_selection_crosses_to_a_worker_process(tmp_path):
+    """What a command hands its worker process (``omnire bench render``) loads the same set:
+    disabled plugins stay out, and strict mode makes a broken plugin fatal there too."""
+    plugins = load_plugins(disabled={"omnire-dataparser-kitti"})
+    assert plugins.selection == PluginSelection(strict=False, disabled=("omnire-dataparser-kitti",), entry_points=True)
+    code = ("import json, sys; from omnire.api import PluginSelection; "
+            "p = PluginSelection.from_dict(json.loads(sys.argv[1])).load(); "
+            "print('kitti' in p.dataparsers, 'nuscenes' in p.dataparsers)")
+    env = dict(os.environ, PYTHONPATH=str(failing_plugin_site(tmp_path)))
+
+    def worker(selection: PluginSelection) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", code, json.dumps(selection.as_dict())], capture_output=True,
+                              text=True, env=env, timeout=300)
+
+    out = worker(plugins.selection)
+    assert out.returncode == 0 and out.stdout.split() == ["False", "True"], out.stderr
+    out = worker(dataclasses.replace(plugins.selection, strict=True))
+    assert out.returncode != 0 and "PluginLoadError" in out.stderr and "omnire-test-fails" in out.stderr

@@ -231,10 +231,11 @@ def test_written_schema_matches_real_av2_files(synthetic_log):
 def test_train_three_steps_on_a_synthetic_av2_log(tmp_path):
     """`omnire synth --format argoverse2` (its entry function, in-process) then
     `omnire train 3dgs argoverse2` in a real subprocess."""
+    from omnire.plugins import load_plugins
     from omnire_synthetic.cli import main as synth_main
 
     scene = tmp_path / "av2_scene"
-    assert synth_main(["urban", str(scene), "--tiny", "--format", "argoverse2"]) == 0
+    assert synth_main(["urban", str(scene), "--tiny", "--format", "argoverse2"], load_plugins()) == 0
     assert (scene / "city_SE3_egovehicle.feather").is_file() and not (scene / "ego_pose").exists()
     env = dict(os.environ, COLUMNS="200", OMP_NUM_THREADS="1")
     out = subprocess.run([sys.executable, "-m", "omnire.cli", "train", "3dgs", "argoverse2", "--data", str(scene),

@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from omnire.api import atomic_write_bytes, atomic_write_text, image_size, read_image, write_png
-from omnire_kitti.dataparser import EARTH_RADIUS
+from omnire.api import atomic_write_bytes, atomic_write_text, image_size, read_image, rigid, write_png
 from omnire.api import axis_rotation as rot_axis
-from omnire_synthetic.source import SyntheticSource, rigid
+from omnire_kitti.dataparser import EARTH_RADIUS
+from omnire_processed.groundtruth import SyntheticSource
 
 SPLIT, SEQUENCE = "training", "0000"
 FIRST_LAT, FIRST_LON, FIRST_ALT = 49.011212804408, 8.4228850417969, 112.83492279053

@@ -320,10 +320,11 @@ def test_plugin_registered():
 
 
 def test_synth_format_and_train(tmp_path):
+    from omnire.plugins import load_plugins
     from omnire_synthetic.cli import main as synth_main
 
     scene = tmp_path / "tiny_kitti"
-    assert synth_main(["urban", str(scene), "--tiny", "--format", "kitti"]) == 0
+    assert synth_main(["urban", str(scene), "--tiny", "--format", "kitti"], load_plugins()) == 0
     assert (scene / "training" / "calib" / "0000.txt").is_file()
     env = dict(os.environ, OMP_NUM_THREADS="1", COLUMNS="200")
     out = subprocess.run(

@@ -43,7 +43,8 @@ import numpy as np
 from omnire.api import UserError, atomic_write_bytes, axis_rotation, interpolate_poses, interpolate_track, rotmat_to_quat
 from omnire_nuplan.dataparser import CAMERAS
 from omnire_nuplan.pointcloud import write_pcd
-from omnire_synthetic.source import SyntheticSource, rigid
+from omnire.api import rigid
+from omnire_processed.groundtruth import SyntheticSource
 
 LOG = "2021.06.07.12.54.00_veh-99_00001_00100"
 """Log name (a real one's form: date, vehicle, start and end sweep); veh-99 marks it synthetic."""

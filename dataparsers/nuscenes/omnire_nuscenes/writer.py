@@ -37,10 +37,10 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from omnire.api import atomic_write_bytes, atomic_write_text, interpolate_poses, rotmat_to_quat
-from omnire_nuscenes.dataparser import CAMERAS, LIDAR
+from omnire.api import atomic_write_bytes, atomic_write_text, interpolate_poses, rigid, rotmat_to_quat
 from omnire.api import axis_rotation as rot_axis
-from omnire_synthetic.source import SyntheticSource, rigid
+from omnire_nuscenes.dataparser import CAMERAS, LIDAR
+from omnire_processed.groundtruth import SyntheticSource
 
 VERSION = "v1.0-mini"
 GLOBAL_FROM_GENERATOR = rigid(rot_axis(2, 0.7), (411.3, 1180.9, 0.0))

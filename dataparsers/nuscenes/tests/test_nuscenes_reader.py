@@ -415,10 +415,11 @@ def test_plugin_registered():
 
 
 def test_synth_format_and_train(tmp_path):
+    from omnire.plugins import load_plugins
     from omnire_synthetic.cli import main as synth_main
 
     scene = tmp_path / "tiny_nuscenes"
-    assert synth_main(["urban", str(scene), "--tiny", "--format", "nuscenes"]) == 0
+    assert synth_main(["urban", str(scene), "--tiny", "--format", "nuscenes"], load_plugins()) == 0
     assert (scene / VERSION / "scene.json").is_file() and not (scene / "images").exists()
     env = dict(os.environ, OMP_NUM_THREADS="1", COLUMNS="200")
     out = subprocess.run(

@@ -39,18 +39,22 @@ from typing import Any, Optional, Sequence, Type
 import numpy as np
 import pandas as pd
 
-from omnire.data.dataparser import Dataparser, DataparserConfig
-from omnire.data.scene import (
+from omnire.api import (
     ActorTrack,
     CameraSequence,
+    Dataparser,
+    DataparserConfig,
     LidarSweeps,
+    MissingFileError,
     SceneData,
     SceneDataError,
     holdout_split,
+    image_size,
+    quat_to_rotmat,
+    rot_z,
+    safe_pickle,
 )
-from omnire.io import safe_pickle
-from omnire.api import image_size, MissingFileError, quat_to_rotmat, rot_z
-from omnire.api import hold_absent_poses, loaded_camera, require_files, thin_points
+from omnire.api import MissingFileError, hold_absent_poses, loaded_camera, require_files, thin_points
 
 CAMERAS = (
     "front_camera",

@@ -1,8 +1,7 @@
 """Entry point of the ``omnire-dataparser-pandaset`` distribution."""
 from __future__ import annotations
 
-from omnire.hookspecs import hookimpl
-from omnire.registry import DataparserSpec
+from omnire.api import DataparserSpec, hookimpl
 
 from omnire_pandaset.dataparser import PandasetConfig
 

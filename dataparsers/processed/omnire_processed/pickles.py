@@ -23,14 +23,14 @@ from typing import Any
 
 import numpy as np
 
-from omnire.io import safe_pickle
-from omnire.io.safe_pickle import NUMPY_DATA, PickleAllowlist, PickleReadError, RestrictedUnpickler, StandIn, UnsafePickleError
+from omnire.api import safe_pickle
+
 
 _JOBLIB_WRAPPER = ("joblib.numpy_pickle", "NumpyArrayWrapper")
 _TORCH_STORAGE = ("torch.storage", "_load_from_bytes")
 
 
-class _ArrayFromStream(StandIn):
+class _ArrayFromStream(safe_pickle.StandIn):
     """Stand-in for joblib's ``NumpyArrayWrapper``; ``stream`` is bound per unpickler."""
 
     stream: io.BytesIO
@@ -46,16 +46,17 @@ class _ArrayFromStream(StandIn):
         dtype = np.dtype(state["dtype"])
         shape = tuple(int(s) for s in state["shape"])
         if dtype.hasobject:
-            raise UnsafePickleError(f"{self.source}: refusing an object array (it would be a nested pickle)")
+            raise safe_pickle.UnsafePickleError(
+                f"{self.source}: refusing an object array (it would be a nested pickle)")
         if state.get("numpy_array_alignment_bytes") is not None:
             pad = self.stream.read(1)
             if len(pad) != 1:
-                raise PickleReadError(f"{self.source}: truncated array padding")
+                raise safe_pickle.PickleReadError(f"{self.source}: truncated array padding")
             self.stream.read(int.from_bytes(pad, "little"))
         count = int(np.prod(shape)) if shape else 1
         raw = self.stream.read(count * dtype.itemsize)
         if len(raw) != count * dtype.itemsize:
-            raise PickleReadError(f"{self.source}: truncated array data ({len(raw)} bytes)")
+            raise safe_pickle.PickleReadError(f"{self.source}: truncated array data ({len(raw)} bytes)")
         arr = np.frombuffer(raw, dtype=dtype).copy()
         if state.get("order", "C") == "F":
             arr = arr.reshape(shape[::-1]).T
@@ -70,7 +71,7 @@ def _load_storage(data: bytes) -> Any:
     return torch.load(io.BytesIO(data), weights_only=True)
 
 
-SMPL_SEQUENCES = NUMPY_DATA | PickleAllowlist(frozenset({
+SMPL_SEQUENCES = safe_pickle.NUMPY_DATA | safe_pickle.PickleAllowlist(frozenset({
     ("torch._utils", "_rebuild_tensor_v2"),
     ("torch", "FloatStorage"),
     ("torch", "LongStorage"),
@@ -82,7 +83,7 @@ SMPL_SEQUENCES_MAX_BYTES = 1 << 30
 """Poses of every pedestrian of a log: ~2 KB per person and frame; 1 GB is far beyond any log."""
 
 
-class SmplPickleUnpickler(RestrictedUnpickler):
+class SmplPickleUnpickler(safe_pickle.RestrictedUnpickler):
     """The restricted unpickler plus joblib array records and torch storages (see module doc)."""
 
     def __init__(self, file: io.BytesIO, source: str) -> None:
@@ -104,14 +105,14 @@ def load_smpl_pickle(path: str | Path) -> Any:
     path = Path(path)
     raw = safe_pickle.read_capped(path, SMPL_SEQUENCES_MAX_BYTES)
     if raw[:2] in (b"ZF", b"\x78\x9c", b"\x78\x01", b"\x78\xda") or raw[:3] == b"BZh" or raw[:4] == b"\x28\xb5\x2f\xfd":
-        raise PickleReadError(
+        raise safe_pickle.PickleReadError(
             f"{path}: compressed joblib file; re-save it uncompressed (joblib.dump(obj, path, compress=0))"
         )
     stream = io.BytesIO(raw)
     try:
         obj = SmplPickleUnpickler(stream, str(path)).load()
-    except PickleReadError:
+    except safe_pickle.PickleReadError:
         raise
     except Exception as exc:
-        raise PickleReadError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc
+        raise safe_pickle.PickleReadError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc
     return safe_pickle.plain(obj)

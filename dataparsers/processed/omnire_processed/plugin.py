@@ -1,8 +1,7 @@
 """omnire plugin: registers the ``processed`` dataparser."""
 from __future__ import annotations
 
-from omnire.hookspecs import hookimpl
-from omnire.registry import DataparserSpec
+from omnire.api import DataparserSpec, hookimpl
 
 
 def _config():

@@ -54,6 +54,7 @@ from omnire.api import (
     STATIONARY_THRESHOLD, ActorTrack, CameraSequence, Dataparser, DataparserConfig, HumanPoseSequence, LidarSweeps,
     SceneData, SceneDataError, image_size, is_stationary, loaded_camera,
 )
+
 from omnire_processed import boxes, formats
 from omnire_processed.formats import LIDAR_LAYOUTS, WAYMO_TO_OPENCV, category_of
 

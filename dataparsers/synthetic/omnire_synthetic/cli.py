@@ -7,6 +7,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from omnire.api import Plugins, UserError
 from omnire_synthetic.generate import SynthOptions, generate
 
 Preset = Literal["urban", "highway", "crowd", "empty"]
@@ -29,13 +30,10 @@ class SynthCommand:
     from a registered scene writer (``omnire plugins`` lists them, e.g. waymo, nuscenes)."""
 
 
-def main(argv: list[str], plugins=None) -> int:
+def main(argv: list[str], plugins: Plugins) -> int:
+    """``omnire synth``; ``plugins``: the CLI's loaded plugins (the scene writers of --format)."""
     cmd = tyro.cli(SynthCommand, args=argv, prog="omnire synth")
     if cmd.format != "processed":
-        if plugins is None:
-            from omnire.plugins import load_plugins
-
-            plugins = load_plugins()
         writer = plugins.scene_writers.get(cmd.format)  # unknown format: RegistryError naming the known ones
         return _generate_and_convert(cmd, writer)
     return _generate(cmd, cmd.out)
@@ -49,8 +47,6 @@ def _generate_and_convert(cmd: SynthCommand, writer) -> int:
 
     out = Path(cmd.out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        from omnire.errors import UserError
-
         raise UserError(f"{out}: exists and is not an empty folder; {cmd.format} scenes are written into a new one")
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=".synth-", dir=out.parent) as tmp:

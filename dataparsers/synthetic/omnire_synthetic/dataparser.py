@@ -5,7 +5,7 @@ import dataclasses
 from pathlib import Path
 from typing import Literal, Type
 
-from omnire.data.scene import SceneData
+from omnire.api import SceneData
 from omnire_processed.reader import ProcessedDataparser, ProcessedDataparserConfig
 from omnire_synthetic.generate import SynthOptions, generate
 

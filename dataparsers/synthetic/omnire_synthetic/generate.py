@@ -29,11 +29,12 @@ from typing import Literal
 import numpy as np
 import torch
 
+from omnire.api import rigid
 from omnire_processed.boxes import AXES, axis_fix, size_fix
 from omnire_processed.formats import BOX_HEADING_AXIS, PIXEL_CENTRES, WAYMO_TO_OPENCV
 from omnire_synthetic import images
-from omnire_synthetic.meshes import Mesh, rigid, rot_z
-from omnire.data.scene import BeamModel
+from omnire.api import BeamModel
+from omnire_synthetic.meshes import Mesh, rot_z
 from omnire_synthetic.lidar import LidarSpec, cast_sweep
 from omnire_synthetic.render import rasterize, sample_texture, sphere_in_frustum
 from omnire_synthetic.textures import MAT, build_textures, sky_color
@@ -409,7 +410,7 @@ def _write_lidar(out: Path, t: int, style: str, p_world: np.ndarray, intensity: 
 
 
 def _rot_noise(rng: np.random.Generator, shape: tuple[int, ...], deg: float) -> np.ndarray:
-    from omnire.geometry import axis_angle_to_rotmat
+    from omnire.api import axis_angle_to_rotmat
 
     if deg <= 0:
         return np.broadcast_to(np.eye(3), shape + (3, 3)).copy()

@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from omnire.data.scene import BeamModel
+from omnire.api import BeamModel
 
 RETURNED, NOTHING_HIT, OUT_OF_RANGE, GRAZING = 0, 1, 2, 3
 """Why a ray did or did not return (:attr:`Sweep.reason`)."""

@@ -130,15 +130,6 @@ def ellipsoid(radii: Sequence[float], mat: int, n_lat: int = 8, n_lon: int = 12,
     return Mesh(verts.reshape(-1, 3), faces, uv.reshape(-1, 2), np.full(len(faces), mat, np.int64))
 
 
-def rigid(R: np.ndarray | None = None, t: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
-    """(4, 4) transform from a rotation and translation."""
-    T = np.eye(4)
-    if R is not None:
-        T[:3, :3] = R
-    T[:3, 3] = t
-    return T
-
-
 def rot_z(a: float) -> np.ndarray:
     """(3, 3) rotation by ``a`` radians about z (see :func:`omnire.geometry.axis_rotation`)."""
     return axis_rotation(2, float(a))

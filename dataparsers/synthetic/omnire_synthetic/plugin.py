@@ -1,8 +1,7 @@
 """omnire plugin: the ``synthetic`` dataparser and the ``omnire synth`` command."""
 from __future__ import annotations
 
-from omnire.hookspecs import hookimpl
-from omnire.registry import CommandSpec, DataparserSpec
+from omnire.api import CommandSpec, DataparserSpec, hookimpl
 
 
 def _config():
@@ -11,7 +10,7 @@ def _config():
     return SyntheticDataparserConfig()
 
 
-def _synth_main(argv: list[str], plugins=None) -> int:
+def _synth_main(argv: list[str], plugins) -> int:
     from omnire_synthetic.cli import main
 
     return main(argv, plugins)

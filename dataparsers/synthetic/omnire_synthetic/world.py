@@ -11,11 +11,13 @@ from typing import Optional
 
 import numpy as np
 
+from omnire.api import rigid
 from omnire_body import lbs
 from omnire_body.lbs import LBSOutput
-from omnire_body.motion import CANON_TO_BOX, gait_pose
+from omnire_body.motion import gait_pose
+from omnire_body.rest import BODY_TO_BOX
 from omnire_body.template import BodyTemplate
-from omnire_synthetic.meshes import Mesh, box, ellipsoid, prism, quad, rigid, rot_x, rot_z
+from omnire_synthetic.meshes import Mesh, box, ellipsoid, prism, quad, rot_x, rot_z
 from omnire_synthetic.textures import FACADES, MAT, PAINTS, PANTS, SHIRTS
 
 
@@ -335,7 +337,7 @@ def _bar(a: np.ndarray, b: np.ndarray, radius: float, mat: int) -> Mesh:
 
 def body_global_orient(yaw: np.ndarray) -> np.ndarray:
     """(F, 3, 3) canonical-body-to-world rotation for a walker heading ``yaw`` (box x axis)."""
-    return np.stack([rot_z(a) @ CANON_TO_BOX for a in yaw])
+    return np.stack([rot_z(a) @ BODY_TO_BOX for a in yaw])
 
 
 _BODY_UV_CACHE: dict[int, np.ndarray] = {}

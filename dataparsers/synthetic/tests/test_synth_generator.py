@@ -204,7 +204,7 @@ def test_scene_files_and_ground_truth(tmp_path):
 def test_synth_command_and_dataparser(tmp_path):
     plugins = load_plugins(strict=True, entry_points=False, extra_modules=(synthetic_plugin,))
     out = tmp_path / "empty"
-    assert plugins.commands.get("synth").main(["empty", str(out), "--tiny", "--seed", "3"]) == 0
+    assert plugins.commands.get("synth").main(["empty", str(out), "--tiny", "--seed", "3"], plugins) == 0
     info = json.loads((out / "instances" / "instances_info.json").read_text())
     assert info == {}
     cfg = plugins.dataparsers.get("synthetic").config_factory()

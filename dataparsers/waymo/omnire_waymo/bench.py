@@ -145,7 +145,6 @@ def _status_kb(field: str) -> int:
 def read_and_measure(path: Path, image_dir: Path, load_lidar: bool, max_points: int) -> dict:
     """In this process: parse ``path`` and report memory (run it in a fresh process)."""
     from omnire_waymo.dataparser import WaymoConfig
-    import omnire.data.images  # noqa: F401
     import google.protobuf.message  # noqa: F401
 
     base = _status_kb("VmRSS")

@@ -305,7 +305,7 @@ def scene_from_flag(entry: str, output: Path) -> Scene:
 
 def method_from_flag(entry: str) -> MethodEntry:
     """``--methods`` entry: "METHOD" or "LABEL=METHOD [FLAGS]"."""
-    from omnire.bench.train import parse_entry
+    from omnire.command_api import parse_entry
 
     try:
         label, method, flags = parse_entry(entry)

@@ -15,8 +15,7 @@ from pathlib import Path
 from typing import Optional
 
 from omnire.api import atomic_write_text
-from omnire.bench.train import TrainBenchArgs, markdown_table
-from omnire.bench.train import plot as plot_scene
+from omnire.command_api import TrainBenchArgs, markdown_table, plot_train_bench as plot_scene
 
 AGGREGATE_COLUMNS = [
     # (header, key in "final", decimals)

@@ -415,15 +415,18 @@ def run(args: HumanPoseBenchArgs, plugins) -> dict:
 
     torch.set_num_threads(max(1, args.threads))
     root = Path(args.data)
-    if not (root / "ground_truth.npz").is_file():
-        if not args.generate:
-            raise UserError(f"{root}: no synthetic scene (ground_truth.npz); pass --generate or run "
-                            f"`omnire synth crowd {root}`")
-        from omnire_synthetic.generate import SynthOptions, generate
-
-        generate(root, "crowd", SynthOptions(seed=args.seed, frames=args.frames, width=args.width, height=args.height))
-    spec = plugins.dataparsers.get("processed")
-    cfg = dataclasses.replace(spec.config_factory(), data=root, scale=1.0, load_human_poses=False)
+    if (root / "ground_truth.npz").is_file():
+        cfg = plugins.dataparsers.get("processed").config_factory()
+    elif not args.generate:
+        raise UserError(f"{root}: no synthetic scene (ground_truth.npz); pass --generate or run "
+                        f"`omnire synth crowd {root}`")
+    else:  # the synthetic dataparser generates the scene, then reads it as the processed reader does
+        if "synthetic" not in plugins.dataparsers:
+            raise UserError("--generate needs the synthetic dataparser (pip install -e dataparsers/synthetic)")
+        cfg = plugins.dataparsers.get("synthetic").config_factory()
+        cfg = dataclasses.replace(cfg, preset="crowd", regenerate=True, generator=dataclasses.replace(
+            cfg.generator, seed=args.seed, frames=args.frames, width=args.width, height=args.height))
+    cfg = dataclasses.replace(cfg, data=root, scale=1.0, load_human_poses=False)
     scene = cfg.setup().parse()
     template = load_template()
     truth = load_truth(root, scene, template)
@@ -452,16 +455,12 @@ def run(args: HumanPoseBenchArgs, plugins) -> dict:
     return results
 
 
-def main(argv: list[str], plugins=None) -> int:
+def main(argv: list[str], plugins) -> int:
     import tyro
 
-    from omnire.io.atomic import atomic_write_text
+    from omnire.api import atomic_write_text
 
     args = tyro.cli(HumanPoseBenchArgs, args=argv, prog="omnire bench humanpose")
-    if plugins is None:
-        from omnire.plugins import load_plugins
-
-        plugins = load_plugins()
     results = run(args, plugins)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

@@ -37,11 +37,9 @@ from typing import Optional
 import numpy as np
 import torch
 
-from omnire.geometry import axis_angle_to_rotmat
+from omnire.api import axis_angle_to_rotmat
 from omnire_body.gait import GaitShape, default_amplitudes, gait_rotations, stride_weight
-
-# SMPL canonical body axes -> box axes (x heading, z up), as in omnire_body.humanpose.
-BODY_TO_BOX = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+from omnire_body.rest import BODY_TO_BOX, neutral_body_pose
 
 # Prior scale (radians) of the per-frame residual of each body joint (SMPL joints 1..23),
 # per axis (x = flexion for the hinge joints).
@@ -221,8 +219,6 @@ class BodyFitter:
                  config: Optional[FitConfig] = None, seed: int = 0) -> None:
         """joints (24, 3), parents (24,), vertices (V, 3), weights (V, 24): the template in
         SMPL's canonical frame."""
-        from omnire_body.humanpose import neutral_body_pose
-
         self.config = config or FitConfig()
         self.parents = [int(p) for p in parents]
         rng = np.random.default_rng(seed)

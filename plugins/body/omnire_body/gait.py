@@ -22,7 +22,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from omnire.geometry import axis_angle_to_rotmat
+from omnire.api import axis_angle_to_rotmat
 
 L_HIP, R_HIP, L_KNEE, R_KNEE, L_ANKLE, R_ANKLE = 1, 2, 4, 5, 7, 8
 L_SHOULDER, R_SHOULDER, L_ELBOW, R_ELBOW = 16, 17, 18, 19
@@ -68,7 +68,7 @@ def gait_rotations(phase: torch.Tensor, weight: torch.Tensor, amps: torch.Tensor
         weight: (F,) stride weight in [0, 1] (:func:`stride_weight`).
         amps: (6,) hip, knee_stance, knee_swing, ankle, arm, elbow (see :class:`GaitShape`).
         neutral: (23, 3, 3) standing pose the gait is built on (arms hanging; from
-            :func:`omnire_body.humanpose.neutral_body_pose`).
+            :func:`omnire_body.rest.neutral_body_pose`).
     Returns:
         (F, 23, 3, 3) joint rotations relative to the parents (SMPL order, no pelvis).
     """

@@ -8,11 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnire.geometry import axis_angle_to_rotmat
-
-CANON_TO_BOX = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-"""SMPL canonical (x left, y up, z forward) -> box frame (x forward, y left, z up): the
-orientation, relative to its box, of an upright body facing along the box's heading."""
+from omnire.api import axis_angle_to_rotmat
 
 GAIT_CYCLE_METRES = 1.3
 """Distance walked per gait cycle (two steps) by an adult at an ordinary pace."""

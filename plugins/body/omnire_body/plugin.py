@@ -2,7 +2,7 @@
 from omnire.api import CommandSpec, hookimpl
 
 
-def _bench_main(argv, plugins=None):
+def _bench_main(argv, plugins):
     from omnire_body.bench import main
 
     return main(argv, plugins)

@@ -18,8 +18,7 @@ from typing import Optional
 
 import numpy as np
 
-from omnire.io import safe_pickle
-from omnire.api import MissingFileError, UserError
+from omnire.api import MissingFileError, UserError, safe_pickle
 
 ASSET_DIR = Path(__file__).resolve().parent / "assets"
 ANNY_TEMPLATE = ASSET_DIR / "anny_cmu_mb_rest_neutral.npz"

@@ -9,9 +9,10 @@ from omnire.data.scene import ActorTrack
 from omnire.geometry import axis_angle_to_rotmat, rot_z
 from omnire_body import forward_kinematics, lbs, load_template
 from omnire_body.bench import aggregate, joint_errors, procrustes
-from omnire_body.fitting import BODY_TO_BOX, BodyFitter, FitConfig, KeypointObservation, TrackData
+from omnire_body.fitting import BodyFitter, FitConfig, KeypointObservation, TrackData
 from omnire_body.gait import default_amplitudes, gait_rotations
-from omnire_body.humanpose import FusedPoseSequence, describe_sequence, neutral_body_pose, prepare_human_poses
+from omnire_body.humanpose import FusedPoseSequence, describe_sequence, prepare_human_poses
+from omnire_body.rest import BODY_TO_BOX, neutral_body_pose
 
 from scene_helpers import make_tiny_scene
 

@@ -6,7 +6,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Optional
 
-from omnire.native import NativeExtension, build_error_line  # noqa: F401 - re-exported for callers
+from omnire.api import NativeExtension, build_error_line  # noqa: F401 - re-exported for callers
 
 SOURCES = [Path(__file__).parent / "csrc" / name for name in ("raster.cpp", "ssim.cpp")]
 # Portable flags: AVX2 + FMA (not -march=native, which ties the .so to one machine).

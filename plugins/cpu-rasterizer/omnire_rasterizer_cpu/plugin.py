@@ -1,6 +1,5 @@
 """Entry point (``omnire`` group, name ``cpu``): registers the native CPU rasterizer."""
-from omnire.hookspecs import hookimpl
-from omnire.registry import RasterizerSpec
+from omnire.api import RasterizerSpec, hookimpl
 
 from omnire_rasterizer_cpu import available
 

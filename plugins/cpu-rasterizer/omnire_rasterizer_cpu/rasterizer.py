@@ -12,12 +12,20 @@ from typing import Optional
 
 import torch
 
-from omnire.camera import Camera
-from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
-from omnire.geometry import quat_multiply, rotmat_to_quat
-from omnire.placement import Placement
-from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
-from omnire.rowsparse import row_sparse
+from omnire.api import (
+    GAUSSIAN_KEYS,
+    Camera,
+    Gaussians,
+    Placement,
+    RasterInputError,
+    RasterSettings,
+    RenderOutput,
+    Splats,
+    check_raster_inputs,
+    quat_multiply,
+    rotmat_to_quat,
+    row_sparse,
+)
 
 from ._build import extension as _ext
 from .ssim import ssim_map as native_ssim_map

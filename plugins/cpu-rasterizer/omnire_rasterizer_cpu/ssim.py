@@ -12,7 +12,7 @@ from typing import Optional
 import torch
 from kornia.filters import get_gaussian_kernel1d
 
-from omnire.losses import ssim_map as torch_ssim_map
+from omnire.api import ssim_map as torch_ssim_map
 
 from ._build import extension as _ext
 

@@ -8,15 +8,15 @@ from typing import Optional
 
 import torch
 
-from omnire.camera import Camera
-from omnire.geometry import quat_to_rotmat
-from omnire.rasterization import (
+from omnire.api import (
     ALPHA_THRESHOLD,
     MAX_ALPHA,
     TILE_SIZE,
     TRANSMITTANCE_MIN,
+    Camera,
     RasterSettings,
     Splats,
+    quat_to_rotmat,
 )
 
 

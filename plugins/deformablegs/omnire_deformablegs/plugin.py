@@ -1,9 +1,7 @@
 """Registers the ``deformable_field`` node type and the ``deformablegs`` method."""
 from __future__ import annotations
 
-from omnire.hookspecs import hookimpl
-from omnire.method import MethodConfig
-from omnire.registry import MethodSpec, NodeTypeSpec
+from omnire.api import MethodConfig, MethodSpec, NodeTypeSpec, hookimpl
 
 from omnire_deformablegs.node import DeformableFieldConfig
 

@@ -63,7 +63,7 @@ def main(argv: list[str], plugins) -> int:
     import torch
     from rich.progress import Progress
 
-    from omnire.ui import output_console
+    from omnire.command_api import output_console
     from omnire_export.export import export, parse_frames
     from omnire_export.loading import load_reconstruction
 

@@ -1,6 +1,5 @@
 """Entry point (``omnire`` group, name ``gsplat``): registers the gsplat CUDA rasterizer."""
-from omnire.hookspecs import hookimpl
-from omnire.registry import RasterizerSpec
+from omnire.api import RasterizerSpec, hookimpl
 
 from omnire_rasterizer_gsplat import available
 

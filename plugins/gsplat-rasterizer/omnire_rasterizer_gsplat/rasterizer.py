@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from omnire.camera import Camera
-from omnire.rasterization import RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
+from omnire.api import Camera, RasterInputError, RasterSettings, RenderOutput, Splats, check_raster_inputs
 
 
 class GsplatRasterizer:

@@ -29,7 +29,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from omnire.data.images import image_size, read_image
+from omnire.api import image_size, read_image
 from omnire_body.humanpose import OCCLUDER_EXTENT, HumanTracklet, project_box, project_outline
 from omnire_pose_mediapipe.ik import MP, SMPL_FROM_MP, landmarks_to_smpl
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnire_body.humanpose import align_directions
+from omnire_body.rest import align_directions
 
 # MediaPipe pose landmark indices (person's left/right).
 MP = {"l_shoulder": 11, "r_shoulder": 12, "l_elbow": 13, "r_elbow": 14, "l_wrist": 15, "r_wrist": 16,

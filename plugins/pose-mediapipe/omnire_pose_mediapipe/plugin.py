@@ -1,5 +1,4 @@
-from omnire.hookspecs import hookimpl
-from omnire.registry import PoseEstimatorSpec
+from omnire.api import PoseEstimatorSpec, hookimpl
 
 
 def _available():

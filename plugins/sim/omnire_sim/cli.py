@@ -15,7 +15,6 @@ import dataclasses
 import json
 import os
 import shutil
-import sys
 import time
 from pathlib import Path
 from typing import Optional
@@ -25,13 +24,7 @@ import torch
 import tyro
 
 from omnire.api import ConfigError, Reconstruction, UserError, atomic_write_text, write_png
-from omnire.camerapath import (
-    CameraPath,
-    file_path,
-    interpolated_path,
-    recorded_path,
-)
-from omnire.io.video import Mp4Writer
+from omnire.command_api import CameraPath, Mp4Writer, file_path, interpolated_path, recorded_path
 from omnire_sim.edits import CameraSpec, Scenario
 from omnire_sim.engine import Simulation
 from omnire_sim.scenario import load_scenario
@@ -135,7 +128,7 @@ def run_sim(args: SimArgs, plugins, argv: Optional[list[str]] = None) -> Path:
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                TimeRemainingColumn)
 
-    from omnire.ui import output_console
+    from omnire.command_api import output_console
 
     scenario = load_scenario(args.scenario)
     if (args.width is None) != (args.height is None):
@@ -253,9 +246,3 @@ def main(argv: list[str], plugins) -> int:
     torch.set_num_threads(max(1, torch.get_num_threads()))
     run_sim(args, plugins, argv)
     return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    from omnire.plugins import load_plugins
-
-    sys.exit(main(sys.argv[1:], load_plugins()))

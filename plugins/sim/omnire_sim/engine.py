@@ -34,11 +34,13 @@ from omnire.api import (
     SceneTime,
     UserError,
     axis_angle_to_rotmat,
+    bracket,
     interpolate_poses,
+    interpolate_rotations,
     rot_z,
 )
-from omnire.interpolation import bracket, interpolate_rotations
-from omnire_body.motion import CANON_TO_BOX, gait_phase, gait_pose
+from omnire_body.motion import gait_phase, gait_pose
+from omnire_body.rest import BODY_TO_BOX as CANON_TO_BOX
 from omnire_sim.edits import ActorEdit, Clock, Insertion, Motion, Placement, Scenario, Trajectory, Where
 
 _EPS_T = 1e-9

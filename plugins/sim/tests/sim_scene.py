@@ -15,7 +15,7 @@ import torch
 from omnire.api import ActorTrack, HumanPoseSequence, Reconstruction, SceneData, rot_z
 from omnire.observations import Observations
 from omnire.plugins import load_plugins
-from omnire_body.motion import CANON_TO_BOX
+from omnire_body.rest import BODY_TO_BOX
 from scene_helpers import make_tiny_scene
 
 FRAMES = 8
@@ -44,7 +44,7 @@ def street_scene(root: Path, with_actors: bool = True) -> SceneData:
     walk = np.stack([np.full(F, 6.0), 2.2 - 0.15 * f, np.full(F, -0.65)], 1)
     ped = _poses(walk, -np.pi / 2)
     scene.tracks.append(ActorTrack("ped-1", "Pedestrian", "human", ped, np.array([0.6, 0.6, 1.7]), np.ones(F, bool)))
-    orient = ped[:, :3, :3] @ CANON_TO_BOX  # upright, facing its heading
+    orient = ped[:, :3, :3] @ BODY_TO_BOX  # upright, facing its heading
     scene.human_poses["ped-1"] = HumanPoseSequence("ped-1", orient, np.tile(np.eye(3), (F, 23, 1, 1)), np.zeros(0),
                                                    np.ones(F, bool), "test")
     ride = np.stack([5.0 + 0.4 * f, np.full(F, 1.4), np.full(F, -0.65)], 1)

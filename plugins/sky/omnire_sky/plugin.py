@@ -1,5 +1,4 @@
-from omnire.hookspecs import hookimpl
-from omnire.registry import NodeTypeSpec
+from omnire.api import NodeTypeSpec, hookimpl
 
 
 @hookimpl

@@ -63,7 +63,7 @@ from omnire.api import (
     slerp_rotmats,
     train_frame_bracket,
 )
-from omnire_body.humanpose import neutral_body_pose
+from omnire_body.rest import neutral_body_pose
 from omnire_body.template import BodyTemplate, load_template
 from omnire_smpl.lbs import forward_kinematics, sparse_weights
 from omnire_smpl.skinning import skin_gaussians

@@ -13,8 +13,7 @@ from typing import Optional
 
 import torch
 
-from omnire.api import quat_multiply, rotmat_to_quat
-from omnire.native import NativeExtension
+from omnire.api import NativeExtension, quat_multiply, rotmat_to_quat
 from omnire_smpl.lbs import blend_transforms
 
 # No instruction-set flags: the kernel is a handful of multiply-adds per point and builds

@@ -12,7 +12,7 @@ from omnire_body import lbs, load_template
 from omnire_body import forward_kinematics as numpy_forward_kinematics
 from omnire.data.images import ImageCache
 from omnire.data.scene import ActorTrack, HumanPoseSequence
-from omnire_body.humanpose import BODY_TO_BOX
+from omnire_body.rest import BODY_TO_BOX
 from omnire.io.safe_pickle import UnsafePickleError
 from omnire.method import MethodConfig
 from omnire.nodes.background import BackgroundConfig

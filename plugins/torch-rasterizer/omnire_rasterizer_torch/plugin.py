@@ -1,5 +1,4 @@
-from omnire.hookspecs import hookimpl
-from omnire.registry import RasterizerSpec
+from omnire.api import RasterizerSpec, hookimpl
 
 
 def _available(device) -> tuple[bool, str]:

@@ -8,7 +8,7 @@ import dataclasses
 
 import torch
 
-from omnire.geometry import quat_to_rotmat
+from omnire.api import quat_to_rotmat
 
 
 @dataclasses.dataclass

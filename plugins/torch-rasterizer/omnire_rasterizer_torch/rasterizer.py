@@ -12,12 +12,12 @@ import math
 
 import torch
 
-from omnire.camera import Camera
-from omnire.rasterization import (
+from omnire.api import (
     ALPHA_THRESHOLD,
     MAX_ALPHA,
     TILE_SIZE,
     TRANSMITTANCE_MIN,
+    Camera,
     RasterSettings,
     RenderOutput,
     Splats,

@@ -46,7 +46,7 @@ class ViewArgs:
 
 def check_run_dir(run_dir: Path, checkpoint: Optional[Path]) -> None:
     """Fail early, before any port is opened or data read, when there is nothing to show."""
-    from omnire.rundir import RunDirectory
+    from omnire.api import RunDirectory
 
     if checkpoint is not None:
         if not Path(checkpoint).is_file():
@@ -63,7 +63,7 @@ def check_run_dir(run_dir: Path, checkpoint: Optional[Path]) -> None:
 
 def main(argv: list[str], plugins) -> int:
     from omnire.api import Reconstruction
-    from omnire.ui import output_console
+    from omnire.command_api import output_console
     from omnire_viewer.app import Viewer, check_port
     from omnire_viewer.scene import ViewerScene
 

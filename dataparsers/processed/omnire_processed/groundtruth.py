@@ -1,6 +1,10 @@
 """A synthetic scene (``omnire synth``, processed layout) as scene writers see it: the
-processed reader's :class:`SceneData` plus the generator's ground truth, all in the
-generator world (z up, metres)."""
+processed reader's :class:`SceneData` plus the generator's ground truth
+(``ground_truth.npz`` / ``.json`` beside the scene), all in the generator world (z up, metres).
+
+It lives with the processed reader, which it is built on, so that the dataset distributions
+whose scene writers convert synthetic scenes (kitti, nuscenes, ...) depend on the processed
+reader only, never on the generator (``omnire-dataparser-synthetic``) that calls them."""
 from __future__ import annotations
 
 import dataclasses
@@ -11,7 +15,9 @@ from typing import Optional
 
 import numpy as np
 
-from omnire.api import SceneData, SceneDataError
+from omnire.api import SceneData, SceneDataError, atomic_write_bytes, atomic_write_text
+from omnire_processed.formats import LIDAR_LAYOUTS
+from omnire_processed.reader import ProcessedDataparser, ProcessedDataparserConfig
 
 
 @dataclasses.dataclass
@@ -58,9 +64,6 @@ class SyntheticSource:
 
     @classmethod
     def load(cls, source: Path) -> "SyntheticSource":
-        from omnire_processed.formats import LIDAR_LAYOUTS
-        from omnire_processed.reader import ProcessedDataparser, ProcessedDataparserConfig
-
         source = Path(source)
         for name in ("ground_truth.npz", "ground_truth.json"):
             if not (source / name).is_file():
@@ -107,8 +110,6 @@ class SyntheticSource:
         ignore it): the generator's arrays with ``file_from_generator`` of the new layout."""
         import io
 
-        from omnire.api import atomic_write_bytes, atomic_write_text
-
         arrays = dict(self.ground_truth)
         arrays["file_from_generator"] = file_from_generator
         buf = io.BytesIO()
@@ -118,11 +119,3 @@ class SyntheticSource:
         meta["converted"] = note
         atomic_write_text(output / "ground_truth.json", json.dumps(meta, indent=1))
 
-
-def rigid(R: Optional[np.ndarray] = None, t=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """(4, 4) from a rotation (3, 3) (identity if None) and a translation (3,)."""
-    M = np.eye(4)
-    if R is not None:
-        M[:3, :3] = R
-    M[:3, 3] = t
-    return M

@@ -1,0 +1,19 @@
+"""The public module of the core for command and benchmark authors, beside :mod:`omnire.api`.
+
+A plugin's ``omnire <name>`` command (``CommandSpec.main(argv, plugins)``) imports what it
+prints, writes and measures with from here: the console the core's commands print with,
+the MP4 writer, the camera paths of ``omnire render`` and ``omnire sim``, and the pieces of
+``omnire bench train`` that other comparisons reuse (its arguments, table, plot and
+``--methods`` entry parser). Everything else it needs (specs, the scene runtime, errors,
+atomic writes) is in :mod:`omnire.api`. docs/plugins.md lists both public modules.
+"""
+from omnire.bench.train import TrainBenchArgs, markdown_table, parse_entry
+from omnire.bench.train import plot as plot_train_bench
+from omnire.camerapath import CameraPath, file_path, interpolated_path, recorded_path
+from omnire.io.video import Mp4Writer, VideoWriteError, write_mp4
+from omnire.ui import output_console
+
+__all__ = [
+    "CameraPath", "Mp4Writer", "TrainBenchArgs", "VideoWriteError", "file_path", "interpolated_path", "markdown_table",
+    "output_console", "parse_entry", "plot_train_bench", "recorded_path", "write_mp4",
+]
