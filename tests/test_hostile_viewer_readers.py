@@ -140,7 +140,7 @@ class ViewerProcess:
             found = re.search(r"omnire view: (http://\S+)", line)
             if found:
                 self.url = found.group(1)
-        self.port = int(re.search(r":(\d+)/", self.url).group(1))
+        self.port = int(re.search(r":(\d+)(?:/|$)", self.url).group(1))
 
     def ws_url(self, query: str = "") -> str:
         return f"ws://127.0.0.1:{self.port}/{query}"
@@ -346,7 +346,7 @@ def test_view_flags(case, tiny_run, capsys):
 
         if torch.cuda.is_available():
             pytest.skip("this torch build has CUDA")
-    run_case(f"view {case}", ["view", str(tiny_run), "--port", "0", *flags], capsys, [tiny_run],
+    run_case(f"view {case}", ["view", str(tiny_run), "--port", "0", "--seconds", "1", *flags], capsys, [tiny_run],
              needles=(needle,), surface="view")
 
 
