@@ -537,4 +537,4 @@ class Viewer:
 def time_line(seconds: float, frame: float, num_frames: int) -> str:
     """The time slider's caption: seconds since the first frame (the clock of ``omnire sim``
     and of scenario files) and the frame."""
-    return f"t = {seconds:.3f} s since the first frame, frame {frame:.1f} of 0-{num_frames - 1}"
+    return f"frame {frame:.1f} of 0-{num_frames - 1}  \nt = {seconds:.3f} s since the first frame"
