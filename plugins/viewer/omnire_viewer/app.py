@@ -73,10 +73,14 @@ def check_port(host: str, port: int) -> None:
             try:
                 s.bind(address)
             except OSError as exc:
-                if exc.errno == errno.EADDRINUSE:
-                    raise PortInUseError(f"{host}:{port} is already in use (another viewer?); "
-                                         "choose a free port with --port") from None
-                raise ViewerError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+                raise listen_error(host, port, exc) from None
+
+
+def listen_error(host: str, port: int, exc: OSError) -> ViewerError:
+    """The one-line error for a failed listen on ``host:port``."""
+    if exc.errno == errno.EADDRINUSE:
+        return PortInUseError(f"{host}:{port} is already in use (another viewer?); choose a free port with --port")
+    return ViewerError(f"cannot listen on {host}:{port}: {exc.strerror or exc}")
 
 
 def look_at_pose(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -112,12 +116,9 @@ class Viewer:
             self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=verbose)  # reached through the gate
         try:
             self.gate = Gate(host, port, self.server.get_port(), token, log=self._log)
-        except OSError as exc:
+        except OSError as exc:  # taken between check_port and here
             self.server.stop()
-            if exc.errno == errno.EADDRINUSE:
-                raise PortInUseError(f"{host}:{port} was taken while the viewer started; choose another with --port") \
-                    from None
-            raise ViewerError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+            raise listen_error(host, port, exc) from None
         self.host, self.port = host, self.gate.port
         self.refusals: list[str] = []
         self._render_lock = threading.Lock()

@@ -120,8 +120,9 @@ def main(argv: list[str], plugins) -> int:
     # the scenario is resolved against the scene here (unknown tracks, times outside the log ...)
     scene = ViewerScene(recon, max_gaussians=args.max_gaussians, sky_count=args.sky_splats, scenario=scenario,
                         plugins=plugins)
+    token = args.token if args.token is not None else os.environ.get("OMNIRE_VIEW_TOKEN")
     viewer = Viewer(scene, args.host, args.port, title=f"{recon.run_info.method} - {args.run_dir.name}",
-                    frame=args.frame, verbose=False, token=args.token if args.token is not None else os.environ.get("OMNIRE_VIEW_TOKEN"))
+                    frame=args.frame, verbose=False, token=token)
     shown = f", scenario {args.scenario}" if scenario is not None else ""
     console.print(f"omnire view: {viewer.url}  ({recon.run_info.method}, step {recon.step}, "
                   f"{recon.num_gaussians():,} Gaussians{shown}; Ctrl-C stops)", highlight=False, soft_wrap=True)

@@ -184,7 +184,8 @@ class Gate:
         from websockets.http11 import Response
 
         given, in_url = self._token_of(request)
-        if self.token is not None and not (given is not None and hmac.compare_digest(given, self.token)):
+        if self.token is not None and not (given is not None
+                                           and hmac.compare_digest(given.encode(), self.token.encode())):
             self.log(f"refused {connection.remote_address[0]}: {'wrong' if given else 'no'} token")
             return connection.respond(http.HTTPStatus.UNAUTHORIZED,
                                       "this viewer needs its token: open the URL printed when it started "
