@@ -102,7 +102,7 @@ from omnire.registry import (
 )
 from omnire.rowsparse import row_sparse
 from omnire.rundir import CheckpointError, RunDirectory, RunDirectoryError
-from omnire.runconfig import TrainConfig, TrainerConfig
+from omnire.runconfig import TrainConfig, TrainerConfig, parse_device
 from omnire.runtime import Reconstruction
 from omnire.trainer import Trainer
 
@@ -140,7 +140,7 @@ __all__ = [
     "LossContext", "LossSpec", "MethodConfig", "MethodSpec", "Node", "NodeConfig", "NodeContext", "NodeOutput",
     "NodeTypeSpec", "ParamGroup", "PoseEstimatorSpec", "RasterInputError", "RasterSettings", "RasterizerSpec",
     "CheckpointError", "Reconstruction", "Registry", "RunDirectory", "RunDirectoryError", "RenderOutput", "SceneData", "SceneDataError", "SceneTime", "SceneWriterSpec",
-    "Splats", "TrainConfig", "TrainObserverSpec", "Trainer", "TrainerConfig", "UserError", "View", "atomic_write_bytes",
+    "Splats", "TrainConfig", "TrainObserverSpec", "Trainer", "TrainerConfig", "parse_device", "UserError", "View", "atomic_write_bytes",
     "atomic_write_text", "axis_angle_to_rotmat", "axis_rotation", "bracket", "check_raster_inputs", "colour_from_images",
     "far_shell", "first_pose_world", "gaussian_reach", "image_size", "frame_blend", "frame_range", "holdout_split", "hookimpl", "in_frustum",
     "init_background_params", "init_gaussian_params", "interpolate_poses", "interpolate_track", "invert_se3",

@@ -69,8 +69,6 @@ class TrainerConfig:
 
 def validate_trainer_config(tc: TrainerConfig) -> None:
     """Reject values that cannot work, naming the flag (before any work is done)."""
-    import torch
-
     positive = {"max_steps": tc.max_steps, "log_every": tc.log_every, "checkpoint_every": tc.checkpoint_every,
                 "observe_every": tc.observe_every}
     for name, value in positive.items():
@@ -82,15 +80,7 @@ def validate_trainer_config(tc: TrainerConfig) -> None:
             raise ConfigError(f"--trainer.{name.replace('_', '-')} {value}: must be >= 0 (0: "
                               + {"max_seconds": "no time limit", "eval_every": "only at the end",
                                  "threads": "torch's default", "eval_train_views": "all"}[name] + ")")
-    try:
-        device = torch.device(tc.device)
-    except (RuntimeError, ValueError) as exc:
-        raise ConfigError(f"--trainer.device {tc.device!r}: not a torch device ({exc})") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"--trainer.device {tc.device}: this torch build has no usable CUDA device "
-                          f"(torch {torch.__version__}); use --trainer.device cpu")
-    if device.type not in ("cpu", "cuda"):
-        raise ConfigError(f"--trainer.device {tc.device}: only cpu and cuda are supported")
+    parse_device(tc.device, "--trainer.device")
     for option in tc.observer_options:
         if "=" not in option or not option.split("=", 1)[0].strip():
             raise ConfigError(f"--trainer.observer-options {option!r}: expected key=value")
@@ -210,3 +200,20 @@ def absolute_argv(argv: list[str], config: TrainConfig, cwd: Path) -> list[str]:
         else:
             out.append(relative.get(token, token))
     return out
+
+
+def parse_device(value: str, flag: str = "--device") -> torch.device:
+    """``value`` as a torch device this build can use (cpu, or cuda[:N] where CUDA is
+    available); a :class:`ConfigError` naming ``flag`` otherwise."""
+    import torch
+
+    try:
+        device = torch.device(value)
+    except (RuntimeError, ValueError) as exc:
+        raise ConfigError(f"{flag} {value!r}: not a torch device ({exc}); expected cpu or cuda[:N]") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"{flag} {value}: this torch build has no usable CUDA device "
+                          f"(torch {torch.__version__}); use {flag} cpu")
+    if device.type not in ("cpu", "cuda"):
+        raise ConfigError(f"{flag} {value}: only cpu and cuda are supported")
+    return device

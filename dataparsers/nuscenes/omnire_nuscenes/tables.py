@@ -102,6 +102,10 @@ def iter_json_array(path: Path, chunk_chars: int = 1 << 20) -> Iterator[Any]:
                 try:
                     value, end = decoder.raw_decode(buf, pos)
                     break
+                except RecursionError:  # a record nested thousands deep: no nuScenes record is
+                    raise NuScenesDataError(f"{path}: element nested too deeply near character {dropped + pos} "
+                                            "(nuScenes records are objects of numbers, strings and short lists)"
+                                            ) from None
                 except json.JSONDecodeError as exc:
                     # Most often the element continues in the next chunk.
                     if not more():
@@ -135,6 +139,11 @@ def load_table(tables: Path, name: str, keep: Optional[Callable[[dict], bool]] =
         for key in fields:
             if key not in rec:
                 raise _missing_field(path, i, rec, key)
+        if "timestamp" in fields:
+            stamp = rec["timestamp"]
+            if not isinstance(stamp, int) or isinstance(stamp, bool) or stamp < 0:
+                raise NuScenesDataError(f"{path}: record {i} (token {rec.get('token', '?')!r}) field 'timestamp' = "
+                                        f"{stamp!r}; expected an integer number of microseconds >= 0")
         out.append(rec)
     return out
 

@@ -31,6 +31,7 @@ Conventions (dataset.proto comments; the projection check of the tests on the re
 from __future__ import annotations
 
 import dataclasses
+import errno
 import os
 import re
 import tempfile
@@ -81,14 +82,26 @@ _RS = dataset_pb2.CameraCalibration.RollingShutterReadOutDirection
 
 
 # ----------------------------------------------------------------------------- helpers
+def _refuse_link_loop(path: Path) -> None:
+    """A one-line error when ``path`` is a symbolic link that never reaches a file (a loop)."""
+    try:
+        os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise MissingFileError(f"{path}: a symbolic link loop (too many levels of symbolic links); --data expects "
+                                   "a Waymo segment file or a folder holding one") from None
+
+
 def resolve_segment(data: Path) -> Path:
     """``data`` is a segment file, or a folder holding exactly one ``*.tfrecord``."""
     data = Path(data)
+    _refuse_link_loop(data)
     if data.is_file():
         return data
     if data.is_dir():
         found = sorted(data.glob("*.tfrecord"))
         if len(found) == 1:
+            _refuse_link_loop(found[0])
             return found[0]
         if not found:
             raise MissingFileError(

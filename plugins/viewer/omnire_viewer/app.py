@@ -11,11 +11,21 @@ resolved by :class:`omnire_sim.Simulation` for the browser objects and the serve
 
 Scene updates run on one worker thread that always draws the newest requested state, so
 dragging the time slider never queues stale frames.
+
+Clients reach viser only through :class:`~omnire_viewer.gate.Gate` (token, message size and
+shape). What a well-formed message may still ask beyond the panel's limits is refused here,
+per client, before any work: a frame outside the log, a render width outside
+:data:`MIN_RENDER_WIDTH`..:data:`MAX_RENDER_WIDTH`, an offset beyond :data:`MAX_OFFSET_M` or a
+turn beyond :data:`MAX_TURN_DEG`, a second server render while one runs. The control goes back
+to its last accepted value and the client gets a notification naming the field.
 """
 from __future__ import annotations
 
+import contextlib
 import errno
+import io
 import math
+import secrets
 import socket
 import threading
 import time
@@ -25,10 +35,19 @@ import numpy as np
 
 from omnire.api import UserError, rotmat_to_quat
 from omnire_viewer.edits import ActorEdit
+from omnire_viewer.gate import Gate, is_loopback
 from omnire_viewer.scene import ViewerScene, camera_from_view
 
 BOX_COLOUR = (40, 160, 255)
 SELECTED_COLOUR = (255, 140, 0)
+MIN_RENDER_WIDTH, MAX_RENDER_WIDTH = 160, 1920
+"""The server render's width range in pixels (the panel's slider; its height follows the
+client's aspect, capped at the same maximum)."""
+MAX_OFFSET_M = 1000.0
+"""Largest offset of a moved actor along each world axis (metres)."""
+MAX_TURN_DEG = 360.0
+"""Largest turn of an actor about its up axis (degrees, either way)."""
+WILDCARD_HOSTS = ("0.0.0.0", "::", "")
 
 
 class ViewerError(UserError):
@@ -54,10 +73,14 @@ def check_port(host: str, port: int) -> None:
             try:
                 s.bind(address)
             except OSError as exc:
-                if exc.errno == errno.EADDRINUSE:
-                    raise PortInUseError(f"{host}:{port} is already in use (another viewer?); "
-                                         "choose a free port with --port") from None
-                raise ViewerError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+                raise listen_error(host, port, exc) from None
+
+
+def listen_error(host: str, port: int, exc: OSError) -> ViewerError:
+    """The one-line error for a failed listen on ``host:port``."""
+    if exc.errno == errno.EADDRINUSE:
+        return PortInUseError(f"{host}:{port} is already in use (another viewer?); choose a free port with --port")
+    return ViewerError(f"cannot listen on {host}:{port}: {exc.strerror or exc}")
 
 
 def look_at_pose(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -73,20 +96,32 @@ class Viewer:
         host, port: where to listen (port 0: any free port; see :attr:`port`).
         title: shown at the top of the panel.
         frame: the initial moment.
-        verbose: let viser print its address banner.
+        verbose: let viser log its connections (its address banner, which names its internal port, is never shown).
+        token: asked of every client (see :mod:`omnire_viewer.gate`); None: none on a loopback
+            address, a new random one on any other (:attr:`token`, part of :attr:`url`).
     """
 
     def __init__(self, scene: ViewerScene, host: str = "127.0.0.1", port: int = 8080, title: str = "omnire",
-                 frame: float = 0.0, verbose: bool = True) -> None:
+                 frame: float = 0.0, verbose: bool = True, token: Optional[str] = None) -> None:
         import viser
 
         check_port(host, port)
+        if token is not None and not token.strip():
+            raise ViewerError("the viewer token is empty: give a non-empty --token (or OMNIRE_VIEW_TOKEN)")
+        if token is None and not is_loopback(host):
+            token = secrets.token_urlsafe(18)  # reachable from other machines: never without a token
         self.scene = scene
-        self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
-        if port != 0 and self.server.get_port() != port:  # viser moves to the next port when one is taken
+        self.token = token
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's banner names its internal port, not ours
+            self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=verbose)  # reached through the gate
+        try:
+            self.gate = Gate(host, port, self.server.get_port(), token, log=self._log)
+        except OSError as exc:  # taken between check_port and here
             self.server.stop()
-            raise PortInUseError(f"{host}:{port} was taken while the viewer started; choose another with --port")
-        self.host, self.port = host, self.server.get_port()
+            raise listen_error(host, port, exc) from None
+        self.host, self.port = host, self.gate.port
+        self.refusals: list[str] = []
+        self._render_lock = threading.Lock()
         self.server.scene.set_up_direction("+z")
         self._handles: dict[str, tuple[object, int]] = {}
         self._boxes: dict[str, object] = {}
@@ -109,12 +144,37 @@ class Viewer:
     # ------------------------------------------------------------------ properties
     @property
     def url(self) -> str:
-        host = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
-        return f"http://{host}:{self.port}"
+        """Where to open the viewer: the address listened on (this machine's name for a
+        wildcard address), with the token when one is asked."""
+        host = socket.gethostname() if self.host in WILDCARD_HOSTS else self.host
+        host = f"[{host}]" if ":" in host else host
+        return f"http://{host}:{self.port}/" + (f"?token={self.token}" if self.token else "")
 
     @property
     def frame(self) -> float:
-        return float(self.gui_frame.value)
+        """The time slider's frame (its last accepted value while a refused one is undone)."""
+        value = float(self.gui_frame.value)
+        return value if self._frame_error(value) is None else self._good_frame
+
+    def _frame_error(self, value: float) -> Optional[str]:
+        last = self.scene.num_frames - 1
+        if not (math.isfinite(value) and 0.0 <= value <= last):
+            return f"Frame {value}: expected 0..{last}"
+        return None
+
+    # ------------------------------------------------------------------ refusals
+    def _log(self, line: str) -> None:
+        print(f"omnire view: {line}", flush=True)
+
+    def refuse(self, client, handle, good, reason: str) -> None:
+        """Undo a refused value of ``handle`` (back to ``good``; None: leave it) and tell
+        ``client`` (None: nobody connected) why."""
+        self.refusals.append(reason)
+        self._log(f"refused: {reason}")
+        if handle is not None and good is not None:
+            handle.value = good
+        if client is not None:
+            client.add_notification("Refused", reason, color="red", auto_close_seconds=10.0)
 
     def hidden_nodes(self) -> frozenset[str]:
         return frozenset(n for n, box in self.gui_nodes.items() if not box.value)
@@ -129,6 +189,7 @@ class Viewer:
         with gui.add_folder("Time"):
             self.gui_frame = gui.add_slider("Frame", min=0.0, max=float(max(F - 1, 1)), step=0.1,
                                             initial_value=float(min(max(frame, 0), F - 1)), disabled=F < 2)
+            self._good_frame = float(self.gui_frame.value)
             self.gui_seconds = gui.add_markdown("")
             self.gui_play = gui.add_checkbox("Play", False, hint="Advance one frame every 0.25 s")
         with gui.add_folder("Show"):
@@ -156,7 +217,8 @@ class Viewer:
         with gui.add_folder("Server render"):
             self.gui_render_button = gui.add_button("Render this view on the server",
                                                     hint="The real rasterizer: SH and sky included")
-            self.gui_render_width = gui.add_slider("Width (px)", min=160, max=1920, step=16, initial_value=640)
+            self.gui_render_width = gui.add_slider("Width (px)", min=MIN_RENDER_WIDTH, max=MAX_RENDER_WIDTH, step=16,
+                                                   initial_value=640)
             self.gui_render_note = gui.add_markdown("")
             self.gui_render_image = gui.add_image(np.zeros((9, 16, 3), np.uint8), label="server render",
                                                   visible=False)
@@ -166,16 +228,24 @@ class Viewer:
         def redraw(_event=None) -> None:
             self._dirty.set()
 
-        self.gui_frame.on_update(redraw)
+        def frame_changed(event) -> None:
+            value = float(self.gui_frame.value)
+            error = self._frame_error(value)
+            if error is not None:
+                self.refuse(event.client, self.gui_frame, self._good_frame, error)
+                return
+            self._good_frame = value
+            self._dirty.set()
+
+        self.gui_frame.on_update(frame_changed)
         for box in self.gui_nodes.values():
             box.on_update(redraw)
         self.gui_boxes.on_update(redraw)
         self.gui_cameras.on_update(redraw)
-        self.gui_actor.on_update(
-            lambda _e: self.select(None if self.gui_actor.value == "(none)" else self.gui_actor.value))
-        self.gui_actor_visible.on_update(lambda _e: self._edit_selected())
-        self.gui_actor_offset.on_update(lambda _e: self._edit_selected())
-        self.gui_actor_yaw.on_update(lambda _e: self._edit_selected())
+        self.gui_actor.on_update(self._actor_chosen)
+        self.gui_actor_visible.on_update(lambda e: self._edit_selected(e.client))
+        self.gui_actor_offset.on_update(lambda e: self._edit_selected(e.client))
+        self.gui_actor_yaw.on_update(lambda e: self._edit_selected(e.client))
         self.gui_actor_reset.on_click(lambda _e: self.reset_edits())
         for tid, box in self.gui_actor_toggles.items():
             box.on_update(lambda _e, tid=tid: self.set_hidden(tid, not self.gui_actor_toggles[tid].value))
@@ -237,15 +307,31 @@ class Viewer:
 
     _syncing = False
 
-    def _edit_selected(self) -> None:
+    def _actor_chosen(self, event) -> None:
+        value = self.gui_actor.value
+        if value != "(none)" and value not in self.scene.actors:
+            self.refuse(event.client, self.gui_actor, self.selected or "(none)",
+                        f"Selected {value!r}: no such actor in this scene")
+            return
+        self.select(None if value == "(none)" else value)
+
+    def _edit_selected(self, client=None) -> None:
         # under the selection lock: the fields and the selection they belong to change together
         with self._select_lock:
             if self._syncing or self.selected is None:
                 return
-            edit = ActorEdit(hidden=not self.gui_actor_visible.value,
-                             offset=tuple(float(v) for v in self.gui_actor_offset.value),
-                             yaw=float(self.gui_actor_yaw.value))
-            self.edit_actor(self.selected, edit)
+            offset = tuple(float(v) for v in self.gui_actor_offset.value)
+            yaw = float(self.gui_actor_yaw.value)
+            current = self.scene.edits.get(self.selected)
+            if not all(math.isfinite(v) and abs(v) <= MAX_OFFSET_M for v in offset):
+                self.refuse(client, self.gui_actor_offset, current.offset,
+                            f"Offset (m) {offset}: expected finite values within +-{MAX_OFFSET_M:g} m")
+                return
+            if not (math.isfinite(yaw) and abs(yaw) <= MAX_TURN_DEG):
+                self.refuse(client, self.gui_actor_yaw, current.yaw,
+                            f"Turn (deg) {yaw}: expected a finite angle within +-{MAX_TURN_DEG:g} degrees")
+                return
+            self.edit_actor(self.selected, ActorEdit(hidden=not self.gui_actor_visible.value, offset=offset, yaw=yaw))
 
     def edit_actor(self, track_id: str, edit: ActorEdit) -> None:
         """Set the panel's edit of ``track_id`` (a track id or an inserted actor's id) and
@@ -281,21 +367,34 @@ class Viewer:
 
     def client_camera(self, client, max_width: Optional[int] = None):
         """The :class:`Camera` of ``client``'s current view (canvas aspect; scaled to at most
-        ``max_width`` pixels wide)."""
+        ``max_width`` pixels wide and :data:`MAX_RENDER_WIDTH` high)."""
         cam = client.camera
         W, H = int(cam.image_width), int(cam.image_height)
         if W <= 0 or H <= 0:
             W, H = 640, 360
-        if max_width is not None and W > max_width:
-            W, H = max_width, max(1, round(H * max_width / W))
+        scale = min(1.0, (max_width or W) / W, MAX_RENDER_WIDTH / H)
+        if scale < 1.0:
+            W, H = max(1, round(W * scale)), max(1, round(H * scale))
         return camera_from_view(cam.position, cam.wxyz, float(cam.fov), W, H, self.scene.model.device)
 
-    def render_for_client(self, client) -> np.ndarray:
-        """Render ``client``'s view on the server and show it in the panel; returns (H, W, 3)."""
-        camera = self.client_camera(client, int(self.gui_render_width.value))
-        t0 = time.perf_counter()
-        rgb = self.scene.render(camera, self.frame, self.hidden_nodes())
-        dt = time.perf_counter() - t0
+    def render_for_client(self, client) -> Optional[np.ndarray]:
+        """Render ``client``'s view on the server and show it in the panel; returns (H, W, 3),
+        or None when refused (a width outside the slider's range, a render already running)."""
+        width = self.gui_render_width.value
+        if not (isinstance(width, int) and MIN_RENDER_WIDTH <= width <= MAX_RENDER_WIDTH):
+            self.refuse(client, self.gui_render_width, 640,
+                        f"Width (px) {width}: expected {MIN_RENDER_WIDTH}..{MAX_RENDER_WIDTH}")
+            return None
+        if not self._render_lock.acquire(blocking=False):
+            self.refuse(client, None, None, "a server render is already running; try again when it is shown")
+            return None
+        try:
+            camera = self.client_camera(client, width)
+            t0 = time.perf_counter()
+            rgb = self.scene.render(camera, self.frame, self.hidden_nodes())
+            dt = time.perf_counter() - t0
+        finally:
+            self._render_lock.release()
         image = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
         self.gui_render_image.image = image
         self.gui_render_image.visible = True
@@ -315,7 +414,7 @@ class Viewer:
             frame = self.frame
             sc = self.scene
             t = sc.time(frame)
-            self.gui_seconds.content = f"t = {t.seconds:.3f} s"
+            self.gui_seconds.content = time_line(t.seconds - float(sc.scene.frame_timestamps[0]), frame, sc.num_frames)
             objects = sc.objects_at(frame)
             hidden = self.hidden_nodes()
             api = self.server.scene
@@ -432,4 +531,11 @@ class Viewer:
 
     def close(self) -> None:
         self._stop.set()
+        self.gate.close()
         self.server.stop()
+
+
+def time_line(seconds: float, frame: float, num_frames: int) -> str:
+    """The time slider's caption: seconds since the first frame (the clock of ``omnire sim``
+    and of scenario files) and the frame."""
+    return f"frame {frame:.1f} of 0-{num_frames - 1}  \nt = {seconds:.3f} s since the first frame"

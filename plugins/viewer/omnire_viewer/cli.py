@@ -2,7 +2,10 @@
 the browser."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
+import os
 import time
 from pathlib import Path
 from typing import Optional
@@ -23,7 +26,11 @@ class ViewArgs:
     run_dir: tyro.conf.Positional[Path]
     """Run directory written by omnire train."""
     host: str = "127.0.0.1"
-    """Address to listen on (0.0.0.0: every interface; the viewer has no authentication)."""
+    """Address to listen on (0.0.0.0: every interface). Any address other machines can reach
+    asks every client for a token (docs/viewer.md)."""
+    token: Optional[str] = None
+    """The token clients must give (default: $OMNIRE_VIEW_TOKEN, else a new random one when
+    --host is not a loopback address; none on loopback)."""
     port: int = 8080
     """Port to listen on (0: any free port)."""
     checkpoint: Optional[Path] = None
@@ -61,32 +68,67 @@ def check_run_dir(run_dir: Path, checkpoint: Optional[Path]) -> None:
                           "one yet; wait for the first, or watch training live with --trainer.observers viewer)")
 
 
+@contextlib.contextmanager
+def nesting_guard(path: Path):
+    """Report a TOML / JSON input nested deeper than Python's parsers go (a RecursionError)
+    as one line naming ``path``."""
+    try:
+        yield
+    except RecursionError:
+        raise ViewerError(f"{path}: nested too deeply to read (lists or tables thousands of levels deep; "
+                          "not a file omnire wrote)") from None
+
+
+def check_args(args: ViewArgs) -> None:
+    """Refuse option values that cannot work, naming the option (before any data is read)."""
+    from omnire.api import parse_device
+
+    for name in ("max_gaussians", "sky_splats"):
+        if getattr(args, name) < 0:
+            raise ViewerError(f"--{name.replace('_', '-')} {getattr(args, name)}: expected a count >= 0")
+    if not (math.isfinite(args.seconds) and args.seconds >= 0):
+        raise ViewerError(f"--seconds {args.seconds}: expected a finite number of seconds >= 0 (0: until Ctrl-C)")
+    if not math.isfinite(args.frame):
+        raise ViewerError(f"--frame {args.frame}: expected a finite frame number")
+    if args.device is not None:
+        parse_device(args.device, "--device")
+
+
 def main(argv: list[str], plugins) -> int:
     from omnire.api import Reconstruction
     from omnire.command_api import output_console
     from omnire_viewer.app import Viewer, check_port
+    from omnire_viewer.gate import is_loopback
     from omnire_viewer.scene import ViewerScene
 
     args = tyro.cli(ViewArgs, args=argv, prog="omnire view")
-    check_run_dir(args.run_dir, args.checkpoint)
+    check_args(args)
+    with nesting_guard(args.run_dir / "run.json"):
+        check_run_dir(args.run_dir, args.checkpoint)
     scenario = None
     if args.scenario is not None:
         from omnire_sim import load_scenario
 
-        scenario = load_scenario(args.scenario)  # format errors before anything is loaded
+        with nesting_guard(args.scenario):
+            scenario = load_scenario(args.scenario)  # format errors before anything is loaded
     check_port(args.host, args.port)
     console = output_console()
-    recon = Reconstruction.from_run(args.run_dir, plugins, args.checkpoint, device=args.device)
+    with nesting_guard(args.run_dir / "run.json"):
+        recon = Reconstruction.from_run(args.run_dir, plugins, args.checkpoint, device=args.device)
     if not 0 <= args.frame <= recon.scene.num_frames - 1:
         raise ViewerError(f"--frame {args.frame}: outside the scene's frames 0..{recon.scene.num_frames - 1}")
     # the scenario is resolved against the scene here (unknown tracks, times outside the log ...)
     scene = ViewerScene(recon, max_gaussians=args.max_gaussians, sky_count=args.sky_splats, scenario=scenario,
                         plugins=plugins)
+    token = args.token if args.token is not None else os.environ.get("OMNIRE_VIEW_TOKEN")
     viewer = Viewer(scene, args.host, args.port, title=f"{recon.run_info.method} - {args.run_dir.name}",
-                    frame=args.frame, verbose=False)
+                    frame=args.frame, verbose=False, token=token)
     shown = f", scenario {args.scenario}" if scenario is not None else ""
     console.print(f"omnire view: {viewer.url}  ({recon.run_info.method}, step {recon.step}, "
-                  f"{recon.num_gaussians():,} Gaussians{shown}; Ctrl-C stops)", highlight=False)
+                  f"{recon.num_gaussians():,} Gaussians{shown}; Ctrl-C stops)", highlight=False, soft_wrap=True)
+    if not is_loopback(args.host):
+        console.print(f"omnire view: listening on {args.host}:{viewer.port}, reachable from other machines; "
+                      "every client needs the token in the URL above", highlight=False, soft_wrap=True)
     try:
         start = time.monotonic()
         while not args.seconds or time.monotonic() - start < args.seconds:

@@ -185,6 +185,19 @@ def test_time_slider_moves_rigid_actors_and_reskins_pedestrians(viewer, recon):
     assert drawn == set(boxes)
 
 
+def test_time_line_counts_from_the_first_frame(viewer, recon):
+    """The caption under the slider gives seconds since the first frame (the clock of omnire
+    sim and of scenario files; the log's Unix time means nothing to a reader) and the frame."""
+    stamps = recon.scene.frame_timestamps
+    for frame in (0.0, 2.5, 6.0):
+        viewer.gui_frame.value = frame
+        viewer._dirty.set()
+        assert viewer.wait_idle()
+        seconds = float(recon.time(frame).seconds - stamps[0])
+        assert viewer.gui_seconds.content == (f"frame {frame:.1f} of 0-{recon.scene.num_frames - 1}  \n"
+                                              f"t = {seconds:.3f} s since the first frame")
+
+
 def sim_rgb(recon, camera, frame, scenario, plugins=None) -> np.ndarray:
     """(H, W, 3) what ``omnire sim`` renders of ``scenario`` through ``camera`` at ``frame``."""
     return Simulation(recon, scenario, plugins).render(camera, recon.time(frame)).rgb.clamp(0, 1).numpy()
