@@ -349,8 +349,9 @@ class Episode:
         return self.served.render(sim, self.served.camera(c, cam_to_world, size), seconds)
 
     def render_rig(self, rig_to_world: np.ndarray, seconds: float, cameras: list[int],
-                   size: Optional[tuple[int, int]] = None) -> dict[str, np.ndarray]:
+                   sizes: list[tuple[int, int]]) -> dict[str, np.ndarray]:
+        """Cameras ``cameras`` (indices) mounted on the rig, each at its size in ``sizes``."""
         sim, served = self.sim, self.served
         return {served.camera_names[c]: served.render(sim, served.camera(c, served.mounted(c, rig_to_world, seconds),
                                                                          size), seconds)
-                for c in cameras}
+                for c, size in zip(cameras, sizes)}

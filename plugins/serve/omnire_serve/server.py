@@ -54,18 +54,11 @@ class BodyLimit:
             message = await receive()
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
-                if seen > self.limit:
-                    raise _TooLarge()
+                if seen > self.limit:  # answered by the app's RequestError handler
+                    raise RequestError("body", f"more than the limit of {self.limit} bytes", 413)
             return message
 
-        try:
-            await self.app(scope, limited, send)
-        except _TooLarge:
-            await _send_error(send, RequestError("body", f"more than the limit of {self.limit} bytes", 413))
-
-
-class _TooLarge(Exception):
-    pass
+        await self.app(scope, limited, send)
 
 
 async def _send_error(send, err: RequestError) -> None:
@@ -126,6 +119,7 @@ def create_app(served: ServedScene, token: Optional[str] = None) -> FastAPI:
     ``Authorization: Bearer <token>`` (None: no token asked)."""
     app = FastAPI(title="omnire serve", docs_url=None, redoc_url=None, openapi_url=None)
     sessions = Sessions(served, served.limits.max_sessions)
+    app.add_middleware(BodyLimit, limit=served.limits.max_body_bytes)
 
     @app.middleware("http")
     async def authorize(request: Request, call_next):
@@ -206,9 +200,8 @@ def create_app(served: ServedScene, token: Optional[str] = None) -> FastAPI:
         else:
             raise RequestError("cameras", "expected a non-empty list of camera names")
         fmt = _format(data, "png")
-        sizes = {c: served.size_of(_field(data, "width", None), _field(data, "height", None), c) for c in cams}
-        size = sizes[cams[0]]
-        images = await run_in_threadpool(episode.render_rig, rig, seconds, cams, size)
+        sizes = [served.size_of(_field(data, "width", None), _field(data, "height", None), c) for c in cams]
+        images = await run_in_threadpool(episode.render_rig, rig, seconds, cams, sizes)
         out = {}
         for name, image in images.items():
             content, _ = encode(image, fmt)

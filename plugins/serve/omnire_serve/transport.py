@@ -32,8 +32,8 @@ class LocalTransport:
         s = self.served
         pose = s.pose(rig_to_world, "pose")
         cams = [s.camera_index(n, "cameras") for n in cameras]
-        size = s.size_of(*(size or (None, None)), cams[0])
-        return self.episode.render_rig(pose, s.seconds_at(timestamp), cams, size)
+        sizes = [s.size_of(*(size or (None, None)), c) for c in cams]
+        return self.episode.render_rig(pose, s.seconds_at(timestamp), cams, sizes)
 
     def actors_at(self, timestamp: int) -> list[dict]:
         return [b.as_json() for b in self.episode.boxes_at(self.served.seconds_at(timestamp))]

@@ -5,14 +5,9 @@ a token."""
 from __future__ import annotations
 
 import os
-import re
-import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 
-import httpx
 import pytest
 import torch
 
@@ -48,44 +43,6 @@ def serve_run(tmp_path_factory, plugins):
     return root / "demo"
 
 
-class ServerProcess:
-    """A running ``omnire serve`` subprocess and its URL."""
-
-    def __init__(self, run: Path, extra: list[str], env: dict) -> None:
-        self.log = open(run.parent / f"serve-{os.getpid()}-{len(extra)}-{time.time_ns()}.log", "w+")
-        self.proc = subprocess.Popen([str(OMNIRE), "serve", str(run), "--port", "0", "--threads", "1", *extra],
-                                     stdout=subprocess.PIPE, stderr=self.log, text=True, env=env)
-        self.url = None
-
-    def wait_ready(self, timeout: float = 900.0) -> "ServerProcess":
-        deadline = time.time() + timeout
-        line = self.proc.stdout.readline()  # blocks until the server has bound its port
-        m = re.search(r"listening on (http://\S+)", line)
-        if not m:
-            self.log.seek(0)
-            raise RuntimeError(f"omnire serve did not start: {line!r}\n{self.log.read()[-3000:]}")
-        self.url = m.group(1)
-        while time.time() < deadline:
-            try:
-                if httpx.get(self.url + "/alive", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=5).status_code < 500:
-                    return self
-            except httpx.HTTPError:
-                time.sleep(0.2)
-        raise RuntimeError("omnire serve: no answer")
-
-    def stop(self) -> tuple[int, str]:
-        """SIGTERM; the exit code and the rest of its stdout."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        try:
-            out, _ = self.proc.communicate(timeout=60)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            out, _ = self.proc.communicate()
-        self.log.close()
-        return self.proc.returncode, out
-
-
 def _env(**extra) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "OMNIRE_SERVE_TOKEN"}
     env.setdefault("OMP_NUM_THREADS", "1")
@@ -97,10 +54,13 @@ def _env(**extra) -> dict:
 def servers(serve_run):
     """(open server, server requiring TOKEN), started together; stopped with SIGTERM at the
     end, which must exit 0."""
-    plain = ServerProcess(serve_run, [], _env())
-    guarded = ServerProcess(serve_run, [], _env(OMNIRE_SERVE_TOKEN=TOKEN))
+    from omnire_serve.process import ServerProcess
+
+    plain = ServerProcess(serve_run, ["--threads", "1"], _env(), serve_run.parent / "serve.log")
+    guarded = ServerProcess(serve_run, ["--threads", "1"], _env(OMNIRE_SERVE_TOKEN=TOKEN),
+                            serve_run.parent / "serve-token.log")
     try:
-        yield plain.wait_ready(), guarded.wait_ready()
+        yield plain.wait_ready(), guarded.wait_ready(TOKEN)
     finally:
         for s in (plain, guarded):
             code, out = s.stop()
