@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import ipaddress
 import os
+import signal
 import socket
 import sys
 from pathlib import Path
@@ -122,6 +123,10 @@ def main(argv: list[str], plugins) -> int:
                                           timeout_graceful_shutdown=10))
     print(f"omnire serve: {recon.scene.name} listening on http://{args.host}:{port}"
           + (" (token required)" if token else ""), flush=True)
+    # uvicorn turns Ctrl-C / SIGTERM into a graceful shutdown and then raises the signal again
+    # for the handler it found installed: this one, so the process ends normally (exit 0)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: None)
     server.run(sockets=[sock])
     print("omnire serve: stopped", flush=True)
     return 0

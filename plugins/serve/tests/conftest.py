@@ -11,10 +11,12 @@ from pathlib import Path
 import pytest
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # serve_helpers (tests are imported by path)
+
+from serve_helpers import TOKEN, clean_env  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[3]
 DEMO_SCENE = REPO / "data" / "demo" / "pandaset_002"
-OMNIRE = Path(sys.executable).parent / "omnire"
-TOKEN = "test-token-5f2a"
 
 
 @pytest.fixture(scope="session")
@@ -43,21 +45,14 @@ def serve_run(tmp_path_factory, plugins):
     return root / "demo"
 
 
-def _env(**extra) -> dict:
-    env = {k: v for k, v in os.environ.items() if k != "OMNIRE_SERVE_TOKEN"}
-    env.setdefault("OMP_NUM_THREADS", "1")
-    env.update(extra)
-    return env
-
-
 @pytest.fixture(scope="session")
 def servers(serve_run):
     """(open server, server requiring TOKEN), started together; stopped with SIGTERM at the
     end, which must exit 0."""
     from omnire_serve.process import ServerProcess
 
-    plain = ServerProcess(serve_run, ["--threads", "1"], _env(), serve_run.parent / "serve.log")
-    guarded = ServerProcess(serve_run, ["--threads", "1"], _env(OMNIRE_SERVE_TOKEN=TOKEN),
+    plain = ServerProcess(serve_run, ["--threads", "1"], clean_env(), serve_run.parent / "serve.log")
+    guarded = ServerProcess(serve_run, ["--threads", "1"], clean_env(OMNIRE_SERVE_TOKEN=TOKEN),
                             serve_run.parent / "serve-token.log")
     try:
         yield plain.wait_ready(), guarded.wait_ready(TOKEN)

@@ -15,7 +15,7 @@ import pytest
 import torch
 from PIL import Image
 
-from conftest import OMNIRE, TOKEN, _env
+from serve_helpers import OMNIRE, TOKEN, clean_env
 from hostile import record
 
 WHITE_CAR = "8ac00bad-822c-4040-b9a2-31424dbcd486"
@@ -106,7 +106,7 @@ def test_pixels_equal_omnire_sim(server, served, serve_run, tmp_path):
                                      "stop_at = 1.0\nbrake = 0.5\n")
     out = tmp_path / "sim"
     subprocess.run([str(OMNIRE), "sim", str(serve_run), "--scenario", str(tmp_path / "s.toml"), "--output", str(out),
-                    "--no-video", "--no-progress"], check=True, env=_env(), capture_output=True)
+                    "--no-video", "--no-progress"], check=True, env=clean_env(), capture_output=True)
     client = httpx.Client(base_url=server.url, headers={"X-Omnire-Session": "pixels"}, timeout=300)
     assert client.post("/scenario", json=tables).status_code == 200
     r = client.post("/render_rig", json={"pose": rig.tolist(), "timestamp": served.start_us + 1_250_000,
@@ -207,7 +207,7 @@ def test_metadata(server, served):
 
 
 def test_non_loopback_needs_a_token(serve_run, tmp_path):
-    r = subprocess.run([str(OMNIRE), "serve", str(serve_run), "--host", "0.0.0.0"], env=_env(), capture_output=True,
+    r = subprocess.run([str(OMNIRE), "serve", str(serve_run), "--host", "0.0.0.0"], env=clean_env(), capture_output=True,
                        text=True, timeout=300)
     record("serve", "non-loopback without a token", exit=r.returncode,
            traceback=r.stderr if "Traceback" in r.stderr else None, wrong=r.returncode != 2)
