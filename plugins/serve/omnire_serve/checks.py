@@ -18,7 +18,7 @@ ORTHONORMAL_TOLERANCE = 1e-3
 @dataclasses.dataclass(frozen=True)
 class Limits:
     """What a request may ask for. ``margin``: metres a pose may lie outside the scene's
-    extent (the box around every recorded camera centre); ``max_pixels``: width x height of
+    extent (the box around every recorded camera, ego and actor position and LiDAR point); ``max_pixels``: width x height of
     one image; ``max_side``: the longest image side."""
 
     margin: float = 50.0

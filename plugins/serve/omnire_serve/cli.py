@@ -45,7 +45,7 @@ class ServeArgs:
     assets: Optional[Path] = None
     """Directory whose runs and motion files client scenarios may use (default: none)."""
     margin: float = Limits.margin
-    """Metres a pose may lie outside the box around the recorded cameras."""
+    """Metres a pose may lie outside the scene (the box around its cameras, actors and LiDAR points)."""
     max_pixels: int = Limits.max_pixels
     """Most pixels of one rendered image."""
     max_sessions: int = Limits.max_sessions

@@ -71,8 +71,12 @@ class ServedScene:
         self.seconds = ts - ts[0]
         self.rig = rig_poses(scene)
         self.camera_names = [c.name for c in scene.cameras]
-        centres = [np.asarray(c.cam_to_world)[:, :3, 3] for c in scene.cameras] + [self.rig[:, :3, 3]]
-        allc = np.concatenate(centres)
+        # the scene's extent: every recorded camera and ego position, actor box centre and LiDAR point
+        where = [np.asarray(c.cam_to_world)[:, :3, 3] for c in scene.cameras] + [self.rig[:, :3, 3]]
+        where += [np.asarray(t.poses)[np.asarray(t.present, bool), :3, 3] for t in scene.tracks]
+        if scene.lidar is not None:
+            where += [np.stack([p.min(0), p.max(0)]) for p in scene.lidar.points if p is not None and len(p)]
+        allc = np.concatenate(where).astype(np.float64)
         self.extent = (allc.min(0), allc.max(0))
         self.tracks = {t.track_id: t for t in scene.tracks}
         self.actor_ids = [t for node in recon.model.nodes.values() if isinstance(node, ActorNode) for t in node.track_ids]
