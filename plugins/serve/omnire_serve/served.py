@@ -299,11 +299,13 @@ class Episode:
     def update_actors(self, items) -> None:
         """neurad-studio's update: the actors listed follow the given poses (box yaw and
         position; roll and pitch are dropped, as scenario trajectories have none), actors
-        not listed are removed, actors listed with their current poses stay as drawn."""
+        not listed are removed, actors listed with their current poses stay as drawn; actors
+        inserted by the scenario (from other runs) keep following it."""
         served = self.served
         if not isinstance(items, list):
             raise RequestError("", "expected a JSON list of actor trajectories")
         current = {t["uuid"]: t for t in self.trajectories()}
+        inserted = {a.key for a in self.sim.actors if a.inserted}
         overrides: dict[str, Optional[Trajectory]] = {}
         seen = set()
         for i, item in enumerate(items):
@@ -313,6 +315,8 @@ class Episode:
                 if key not in item:
                     raise RequestError(f"{i}.{key}", "missing")
             uuid = item["uuid"]
+            if isinstance(uuid, str) and uuid in inserted:
+                continue  # an actor of another run: it follows the scenario's insertion
             if not isinstance(uuid, str) or uuid not in served.actor_ids:
                 raise RequestError(f"{i}.uuid", f"{uuid!r}: not an actor of this scene (GET /get_actors lists them)")
             if uuid in seen:

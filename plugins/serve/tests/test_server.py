@@ -212,3 +212,17 @@ def test_non_loopback_needs_a_token(serve_run, tmp_path):
     record("serve", "non-loopback without a token", exit=r.returncode,
            traceback=r.stderr if "Traceback" in r.stderr else None, wrong=r.returncode != 2)
     assert r.returncode == 2 and "needs a token" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_bench_serve_writes_its_table(serve_run, tmp_path):
+    out = tmp_path / "bench.json"
+    r = subprocess.run([str(OMNIRE), "bench", "serve", str(serve_run), "--requests", "2", "--clients", "1", "2",
+                        "--width", "64", "--height", "36", "--threads", "1", "--output", str(out)],
+                       env=clean_env(), capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    result = json.loads(out.read_text())
+    rows = {(x["case"], x["clients"]): x for x in result["results"]}
+    assert set(rows) == {("camera", 1), ("camera", 2), ("rig", 1), ("rig", 2)}
+    assert rows[("rig", 2)]["cameras"] == 3 and rows[("camera", 2)]["requests"] == 4
+    assert all(0 < x["p50_ms"] <= x["p95_ms"] for x in rows.values())
+    assert "| rig | 3 | 2 |" in r.stdout
