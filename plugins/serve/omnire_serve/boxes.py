@@ -30,3 +30,29 @@ def overlap(a: np.ndarray, b: np.ndarray) -> bool:
             if pa.max() < pb.min() or pb.max() < pa.min():
                 return False
     return True
+
+
+def gap_ahead(ego_xy, ego_yaw: float, ego_length: float, ego_width: float, pose: np.ndarray, size: np.ndarray,
+              lateral_margin: float = 0.0, horizon: float = 40.0):
+    """Metres of free road between the ego's front and a box (pose (4, 4), size (3,)) in
+    its path ahead: the box's footprint reaches into the ego's width (plus
+    ``lateral_margin`` each side) and lies ahead of the ego's front within ``horizon``
+    metres. None when the box is not in the path ahead."""
+    c, s = np.cos(ego_yaw), np.sin(ego_yaw)
+    rel = footprint_of(pose, size) - np.asarray(ego_xy, dtype=np.float64)[:2]
+    fwd, left = rel @ [c, s], rel @ [-s, c]  # the box's corners in the ego frame
+    half = ego_width / 2 + lateral_margin
+    # the nearest point of the footprint within the ego's lateral band |left| <= half: a
+    # corner inside the band or where an edge crosses one of its sides
+    near = [f for f, lat in zip(fwd, left) if abs(lat) <= half]
+    for k in range(4):
+        f0, l0, f1, l1 = fwd[k], left[k], fwd[(k + 1) % 4], left[(k + 1) % 4]
+        for side in (-half, half):
+            if (l0 - side) * (l1 - side) < 0:
+                near.append(f0 + (side - l0) / (l1 - l0) * (f1 - f0))
+    if not near:
+        return None
+    front = min(near)
+    if max(near) <= ego_length / 2 or front > horizon:
+        return None
+    return float(front) - ego_length / 2

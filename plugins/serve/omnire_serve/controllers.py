@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from omnire_serve.boxes import footprint_of
+from omnire_serve.boxes import gap_ahead
 
 
 @dataclasses.dataclass
@@ -70,18 +70,13 @@ class LaneKeeper:
         on the ground plane), that actor's box),
         or None."""
         ego = info["ego"]
-        c, s = math.cos(ego["yaw"]), math.sin(ego["yaw"])
         L, W = env.config.ego_size[0], env.config.ego_size[1]
         best = None
         for b in info["actors"]:
-            pose, size = np.asarray(b["pose"]), np.asarray(b["size"])
-            rel = footprint_of(pose, size) - [ego["x"], ego["y"]]
-            fwd, left = rel @ [c, s], rel @ [-s, c]  # the box's corners in the ego frame
-            if fwd.max() <= L / 2 or fwd.min() > horizon:
-                continue  # behind the ego's front or too far
-            if left.min() > W / 2 + lateral_margin or left.max() < -W / 2 - lateral_margin:
-                continue  # beside the ego's path
-            gap = float(fwd.min()) - L / 2
+            gap = gap_ahead((ego["x"], ego["y"]), ego["yaw"], L, W, np.asarray(b["pose"]), np.asarray(b["size"]),
+                            lateral_margin, horizon)
+            if gap is None:
+                continue
             if best is None or gap < best[0]:
                 best = (gap, b)
         return best

@@ -4,8 +4,8 @@ from the environment's per-step ``info``:
 - ``collision``: the first actor the ego touched (id, class), the time and the ego's speed
   then; None without one;
 - ``min_time_to_collision``: the smallest time (s) until the ego's front would reach the
-  nearest actor box in its path (boxes within the ego's width, along its heading), at the
-  two's speeds along that heading at each step (None: never closing in);
+  nearest actor box in its path (boxes reaching into the ego's width ahead of it,
+  boxes.gap_ahead), at the two's speeds along its heading at each step (None: never closing in);
 - ``progress``: metres driven along the route and the fraction of its length;
 - comfort: the largest |jerk| (m/s^3, from the ego's accelerations) and |lateral
   acceleration| (m/s^2: speed x yaw rate);
@@ -19,12 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-
-def _ego_frame(info: dict, pose: np.ndarray) -> tuple[float, float]:
-    ego = info["ego"]
-    c, s = math.cos(ego["yaw"]), math.sin(ego["yaw"])
-    dx, dy = pose[0, 3] - ego["x"], pose[1, 3] - ego["y"]
-    return c * dx + s * dy, -s * dx + c * dy
+from omnire_serve.boxes import gap_ahead
 
 
 def time_to_collision(prev: dict, info: dict, ego_size: tuple[float, float, float], dt: float) -> Optional[float]:
@@ -32,14 +27,14 @@ def time_to_collision(prev: dict, info: dict, ego_size: tuple[float, float, floa
     moment, at constant speeds along the ego's heading (actor speeds from ``prev``), or None."""
     L, W = ego_size[0], ego_size[1]
     before = {b["id"]: np.asarray(b["pose"]) for b in prev["actors"]}
-    v_ego = info["ego"]["speed"]
+    ego = info["ego"]
+    v_ego = ego["speed"]
     best = None
     for b in info["actors"]:
-        pose, size = np.asarray(b["pose"]), np.asarray(b["size"])
-        fx, fy = _ego_frame(info, pose)
-        if fx <= 0 or abs(fy) > (W + size[1]) / 2:
+        pose = np.asarray(b["pose"])
+        gap = gap_ahead((ego["x"], ego["y"]), ego["yaw"], L, W, pose, np.asarray(b["size"]))
+        if gap is None:
             continue
-        gap = fx - L / 2 - size[0] / 2
         v_actor = 0.0
         if b["id"] in before:
             yaw = info["ego"]["yaw"]

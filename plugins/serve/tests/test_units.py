@@ -147,3 +147,30 @@ def test_json_tables_parse_as_the_scenario_file_does(tmp_path):
         with pytest.raises(RequestError) as err:
             parse_tables(bad, tmp_path)
         assert err.value.field == field, (bad, err.value)
+
+
+def test_gap_ahead_matches_sliding_the_ego_forward():
+    """The gap to a box in the path equals how far the ego's footprint (widened by the
+    margin) slides forward before it first touches the box, found in 1 cm steps."""
+    from omnire_serve.boxes import footprint_of, gap_ahead
+
+    rng = np.random.default_rng(3)
+    checked = 0
+    for _ in range(200):
+        yaw = rng.uniform(-np.pi, np.pi)
+        pose = np.eye(4)
+        a = rng.uniform(-np.pi, np.pi)
+        pose[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+        pose[:2, 3] = rng.uniform(-15, 15, 2)
+        size = np.array([rng.uniform(0.5, 5), rng.uniform(0.5, 2.5), 1.5])
+        gap = gap_ahead((0.0, 0.0), yaw, 4.8, 2.0, pose, size)
+        box = footprint_of(pose, size)
+        steps = np.arange(0.0, 40.0, 0.01)
+        hits = [d for d in steps
+                if overlap(footprint(np.array([np.cos(yaw), np.sin(yaw)]) * (d + 2.4 - 0.005), yaw, 0.01, 2.0), box)]
+        if gap is None:
+            assert not hits or hits[0] > 40.0 - 4.8
+        else:
+            checked += 1
+            assert hits and hits[0] == pytest.approx(max(gap, 0.0), abs=0.02)
+    assert checked > 10
