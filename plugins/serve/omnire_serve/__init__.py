@@ -1,0 +1,1 @@
+"""omnire-serve: closed-loop simulation on a reconstructed scene."""
