@@ -9,11 +9,11 @@ atomic writes) is in :mod:`omnire.api`. docs/plugins.md lists both public module
 """
 from omnire.bench.train import TrainBenchArgs, markdown_table, parse_entry
 from omnire.bench.train import plot as plot_train_bench
-from omnire.camerapath import CameraPath, file_path, interpolated_path, recorded_path
+from omnire.camerapath import CameraPath, file_path, interpolated_path, recorded_path, rig_poses
 from omnire.io.video import Mp4Writer, VideoWriteError, write_mp4
 from omnire.ui import output_console
 
 __all__ = [
     "CameraPath", "Mp4Writer", "TrainBenchArgs", "VideoWriteError", "file_path", "interpolated_path", "markdown_table",
-    "output_console", "parse_entry", "plot_train_bench", "recorded_path", "write_mp4",
+    "output_console", "parse_entry", "plot_train_bench", "recorded_path", "rig_poses", "write_mp4",
 ]

@@ -8,13 +8,16 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Annotated, Any, Optional, Union
+from typing import TYPE_CHECKING, Annotated, Any, Optional, Union
 
 import tyro
 
 from omnire.errors import ConfigError
 from omnire.method import MethodConfig
 from omnire.registry import RegistryError
+
+if TYPE_CHECKING:
+    import torch
 
 
 @dataclasses.dataclass

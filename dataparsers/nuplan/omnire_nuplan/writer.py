@@ -115,7 +115,6 @@ def write_nuplan(src: SyntheticSource, output: Path) -> dict:
     if C > len(CAMERAS):
         raise UserError(f"{src.source}: {C} cameras; nuPlan has {len(CAMERAS)}")
     channels = CAMERAS[:C]
-    blobs = blobs_path(output) / LOG
     rows: dict[str, list[tuple]] = {name: [] for name in SCHEMA}
     log_tok, scene_tok, lidar_tok = token("log", LOG), token("scene", LOG), token("lidar", LOG)
 

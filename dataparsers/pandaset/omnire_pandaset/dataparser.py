@@ -54,7 +54,7 @@ from omnire.api import (
     rot_z,
     safe_pickle,
 )
-from omnire.api import MissingFileError, hold_absent_poses, loaded_camera, require_files, thin_points
+from omnire.api import hold_absent_poses, loaded_camera, require_files, thin_points
 
 CAMERAS = (
     "front_camera",

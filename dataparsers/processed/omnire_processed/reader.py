@@ -174,7 +174,6 @@ class ProcessedDataparser(Dataparser):
             raise ProcessedSceneError(f"{root}: frame range {start}..{end} is empty (log has {n_full} frames)")
         poses_file = np.stack([_load_matrix(pose_dir / f"{t:03d}.txt") for t in range(n_full)])  # (N, 4, 4)
         frames = np.arange(start, end)
-        F = len(frames)
 
         cam_ids = self._camera_ids(root)
         per_frame = self._extrinsics_layout(root, cam_ids[0])

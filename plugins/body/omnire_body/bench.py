@@ -28,7 +28,6 @@ import dataclasses
 import json
 import time
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 

@@ -11,7 +11,6 @@ import ipaddress
 import os
 import signal
 import socket
-import sys
 from pathlib import Path
 from typing import Optional
 
@@ -130,9 +129,3 @@ def main(argv: list[str], plugins) -> int:
     server.run(sockets=[sock])
     print("omnire serve: stopped", flush=True)
     return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    from omnire.plugins import load_plugins
-
-    sys.exit(main(sys.argv[1:], load_plugins()))

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from omnire.io.video import Mp4Writer
+from omnire.command_api import Mp4Writer
 from omnire_serve.boxes import footprint, footprint_of
 
 

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from omnire.api import ActorNode, Camera, Reconstruction, UserError
-from omnire.camerapath import rig_poses
+from omnire.command_api import rig_poses
 from omnire_serve.checks import Limits, image_size, pose_matrix
 from omnire_serve.corridor import Corridor, build_corridor
 from omnire_serve.errors import RequestError

@@ -7,7 +7,6 @@ import io
 import json
 import subprocess
 import threading
-from pathlib import Path
 
 import httpx
 import numpy as np
