@@ -68,3 +68,24 @@ def test_bad_input_is_one_line(tmp_path, capsys):
              needles=("run.json",), check=lambda: not (tmp_path / "a").exists())
     run_case("no such run", ["compact", str(tmp_path / "missing"), "--output", str(tmp_path / "a")], capsys, [],
              needles=("no such run directory",))
+
+
+def test_keeping_everything_without_finetuning_copies_the_model(tiny_run, tmp_path):
+    import torch
+
+    from omnire.api import RunDirectory
+    from omnire.cli import main
+
+    out = tmp_path / "copy"
+    assert main(["compact", str(tiny_run), "--output", str(out), "--keep-fraction", "1", "--finetune-steps", "0",
+                 "--eval-train-views", "1", "--threads", "1", "--no-progress"]) in (0, None)
+    _, source = RunDirectory(tiny_run).load_latest_checkpoint()
+    path, copy = RunDirectory(out).load_latest_checkpoint()
+    assert copy["step"] == source["step"] and (out / "eval" / f"step-{copy['step']:06d}.json").is_file()
+    assert set(copy["model"]) == set(source["model"])
+    for key, value in source["model"].items():
+        if torch.is_tensor(value):
+            assert torch.equal(copy["model"][key], value), key
+    report = json.loads((out / "compact.json").read_text())
+    assert list(report["states"]) == ["source", "compacted"]
+    assert all(c["before"] == c["after"] for c in report["counts"].values())
