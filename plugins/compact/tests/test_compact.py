@@ -18,7 +18,8 @@ OMNIRE = str(Path(sys.executable).parent / "omnire")
 
 def omnire(*argv: str) -> str:
     proc = subprocess.run([OMNIRE, *argv], capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, f"omnire {' '.join(argv)}: exit {proc.returncode}\n{proc.stdout[-2000:]}{proc.stderr[-2000:]}"
+    assert proc.returncode == 0, (f"omnire {' '.join(argv)}: exit {proc.returncode}\n"
+                                  f"{proc.stdout[-2000:]}{proc.stderr[-2000:]}")
     return proc.stdout
 
 
