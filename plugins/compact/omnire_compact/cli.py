@@ -19,8 +19,9 @@ import tyro
 
 from omnire.api import ConfigError, Reconstruction, RunDirectory, Trainer, UserError, atomic_write_text
 
-DEFAULT_FINETUNE_STEPS = 200
-"""Fine-tuning steps after pruning by default (docs/compact.md has the measurement behind it)."""
+DEFAULT_FINETUNE_STEPS = 0
+"""Fine-tuning steps after pruning by default: none, as measured (docs/compact.md, "Measurements":
+half the Gaussians cost 0.003 dB held-out PSNR without fine-tuning)."""
 
 SET_BY_COMPACT = ("--trainer.resume", "--trainer.output-dir", "--trainer.run-name", "--trainer.max-steps",
                   "--trainer.max-seconds")
