@@ -120,7 +120,7 @@ def format_table(rows: dict[str, dict]):
 
 
 def main(argv: list[str], plugins) -> int:
-    from omnire.ui import output_console  # not in omnire.api (see docs/compact.md)
+    from omnire.command_api import output_console
 
     args = tyro.cli(CompactArgs, args=argv, prog="omnire compact")
     check_args(args)
