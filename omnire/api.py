@@ -86,6 +86,16 @@ from omnire.rundir import CheckpointError, RunDirectory, RunDirectoryError
 from omnire.runconfig import TrainConfig, TrainerConfig
 from omnire.runtime import Reconstruction
 from omnire.trainer import Trainer
+# --- scene runtime and rasterizer capabilities (issue 37 items 2-3) ---
+from omnire.rasterization import (  # noqa: E402
+    CAPABILITIES,
+    FusedTrainingRasterizer,
+    InferenceRasterizer,
+    Rasterizer,
+    SsimRasterizer,
+)
+from omnire.runtime import ActorEdits, Drawn, EditedActor  # noqa: E402
+# --- end ---
 
 __all__ = [
     "CATEGORIES", "GAUSSIAN_KEYS", "MissingFileError", "ActorNode", "ActorState", "ActorPoses", "ActorTrack", "BackgroundConfig", "BoxActorConfig",
@@ -104,4 +114,8 @@ __all__ = [
     "to_tensor", "track_displacement", "train_frame_bracket", "transform_instances", "usable_track", "user_cache_dir",
     "placed_output", "Placement",
     "visible_in_cameras", "voxel_downsample", "write_png",
+    # --- scene runtime and rasterizer capabilities (issue 37 items 2-3) ---
+    "ActorEdits", "CAPABILITIES", "Drawn", "EditedActor", "FusedTrainingRasterizer", "InferenceRasterizer",
+    "Rasterizer", "SsimRasterizer",
+    # --- end ---
 ]
