@@ -9,7 +9,7 @@ import sys
 
 import pytest
 from scene_helpers import DEMO_SCENE
-from test_plugins import _write_dist, run
+from test_plugins import installed_dists, run
 
 from omnire.errors import ConfigError
 from omnire.plugins import load_plugins
@@ -95,16 +95,9 @@ OVERCLAIMING = '''
 
 @pytest.fixture(scope="module")
 def installed_rasterizer_plugins(tmp_path_factory):
-    root = tmp_path_factory.mktemp("raster-dists")
-    dists = [_write_dist(root, "omnire-test-minraster", "omnire_test_minraster", MINIMAL),
-             _write_dist(root, "omnire-test-claims", "omnire_test_claims", OVERCLAIMING)]
-    pip = [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation"]
-    subprocess.run(pip + [str(d) for d in dists], check=True)
-    try:
+    with installed_dists(tmp_path_factory.mktemp("raster-dists"),
+                         {"omnire-test-minraster": MINIMAL, "omnire-test-claims": OVERCLAIMING}):
         yield
-    finally:
-        subprocess.run([sys.executable, "-m", "pip", "uninstall", "--quiet", "-y", "omnire-test-minraster",
-                        "omnire-test-claims"], check=True)
 
 
 def test_plugins_lists_paths_and_refuses_an_overclaiming_backend(installed_rasterizer_plugins):
