@@ -6,13 +6,39 @@ authors also from :mod:`omnire.command_api`; no other core module is public (an
 import-linter contract in pyproject.toml keeps plugin packages to these two).
 docs/plugins.md shows each in use.
 """
+from omnire.beams import (
+    RangeImage,
+    assign_beams,
+    estimate_azimuth_resolution,
+    estimate_elevations,
+    points_in_sensor_frame,
+    range_image,
+    spherical,
+)
 from omnire.camera import CULL_SIGMAS, Camera, gaussian_reach, in_frustum, may_be_drawn
 from omnire.config import InstantiateConfig
-from omnire.data.dataparser import Dataparser, DataparserConfig, LogDataparserConfig, first_pose_world, frame_range
+from omnire.data.dataparser import (
+    STATIONARY_THRESHOLD,
+    Dataparser,
+    DataparserConfig,
+    LogDataparserConfig,
+    MaxTrackGap,
+    first_pose_world,
+    frame_range,
+    hold_absent_poses,
+    is_stationary,
+    loaded_camera,
+    loaded_intrinsics,
+    majority_label,
+    nearest_index,
+    require_files,
+    resample_track,
+)
 from omnire.data.images import ImageCache, ImageReadError, image_size, read_image
 from omnire.data.scene import (
     CATEGORIES,
     ActorTrack,
+    BeamModel,
     CameraSequence,
     HumanPoseSequence,
     LidarSweeps,
@@ -49,8 +75,8 @@ from omnire.native import NativeExtension, build_error_line
 from omnire.nn import DeformationMLP, positional_encoding
 from omnire.nodes.actors import (
     ActorNode,
-    ActorState,
     ActorPoses,
+    ActorState,
     BoxActorConfig,
     BoxActorNode,
     frame_blend,
@@ -76,16 +102,29 @@ from omnire.nodes.base import (
 )
 from omnire.placement import Placement
 from omnire.plugins import PluginLoadError, Plugins, PluginSelection
-from omnire.pointcloud import colour_from_images, far_shell, knn_scales, points_in_box, to_tensor, voxel_downsample
+from omnire.pointcloud import (
+    colour_from_images,
+    far_shell,
+    knn_scales,
+    points_in_box,
+    thin_points,
+    to_tensor,
+    voxel_downsample,
+)
 from omnire.rasterization import (
     ALPHA_THRESHOLD,
+    CAPABILITIES,
     MAX_ALPHA,
     TILE_SIZE,
     TRANSMITTANCE_MIN,
+    FusedTrainingRasterizer,
+    InferenceRasterizer,
     RasterInputError,
+    Rasterizer,
     RasterSettings,
     RenderOutput,
     Splats,
+    SsimRasterizer,
     check_raster_inputs,
 )
 from omnire.registry import (
@@ -101,61 +140,35 @@ from omnire.registry import (
     TrainObserverSpec,
 )
 from omnire.rowsparse import row_sparse
-from omnire.rundir import CheckpointError, RunDirectory, RunDirectoryError
 from omnire.runconfig import TrainConfig, TrainerConfig, parse_device
-from omnire.runtime import Reconstruction
+from omnire.rundir import CheckpointError, RunDirectory, RunDirectoryError
+from omnire.runtime import ActorEdits, Drawn, EditedActor, Reconstruction
 from omnire.trainer import Trainer
 
-# Shared by dataset readers (dataparsers): option checks, camera sizes, tracks, LiDAR thinning.
-from omnire.data.dataparser import (
-    STATIONARY_THRESHOLD,
-    MaxTrackGap,
-    hold_absent_poses,
-    is_stationary,
-    loaded_camera,
-    loaded_intrinsics,
-    majority_label,
-    nearest_index,
-    require_files,
-    resample_track,
-)
-from omnire.pointcloud import thin_points
-# LiDAR beams (docs/lidar.md)
-from omnire.beams import (
-    RangeImage,
-    assign_beams,
-    estimate_azimuth_resolution,
-    estimate_elevations,
-    points_in_sensor_frame,
-    range_image,
-    spherical,
-)
-from omnire.data.scene import BeamModel
-
 __all__ = [
-    "CATEGORIES", "CULL_SIGMAS", "GAUSSIAN_KEYS", "MissingFileError", "ActorNode", "ActorState", "ActorPoses", "ActorTrack", "BackgroundConfig", "BoxActorConfig",
-    "BoxActorNode", "Camera", "CameraSequence", "CommandSpec", "ConfigError", "Dataparser", "DataparserConfig",
-    "DataparserSpec", "DeformationMLP", "EnvironmentNode", "GaussianNode", "GaussianNodeConfig", "Gaussians",
-    "HumanPoseSequence", "ImageCache", "ImageReadError", "InstantiateConfig", "LidarSweeps", "LogDataparserConfig",
-    "LossContext", "LossSpec", "MethodConfig", "MethodSpec", "Node", "NodeConfig", "NodeContext", "NodeOutput",
-    "NodeTypeSpec", "ParamGroup", "PoseEstimatorSpec", "RasterInputError", "RasterSettings", "RasterizerSpec",
-    "CheckpointError", "Reconstruction", "Registry", "RunDirectory", "RunDirectoryError", "RenderOutput", "SceneData", "SceneDataError", "SceneTime", "SceneWriterSpec",
-    "Splats", "TrainConfig", "TrainObserverSpec", "Trainer", "TrainerConfig", "parse_device", "UserError", "View", "atomic_write_bytes",
-    "atomic_write_text", "axis_angle_to_rotmat", "axis_rotation", "bracket", "check_raster_inputs", "colour_from_images",
-    "far_shell", "first_pose_world", "gaussian_reach", "image_size", "frame_blend", "frame_range", "holdout_split", "hookimpl", "in_frustum", "may_be_drawn", "segment_max",
-    "init_background_params", "init_gaussian_params", "interpolate_poses", "interpolate_track", "invert_se3",
-    "knn_scales", "lidar_points_for_init", "points_in_box", "positional_encoding", "quat_multiply",
-    "quat_to_rotmat", "quat_to_se3", "rgb_to_sh0", "rot_z", "rotmat_to_axis_angle", "rotmat_to_quat", "slerp_rotmats",
-    "to_tensor", "track_displacement", "train_frame_bracket", "transform_instances", "usable_track", "user_cache_dir",
-    "placed_output", "Placement",
-    "visible_in_cameras", "voxel_downsample", "write_png",
-    # Shared by dataset readers (dataparsers).
-    "STATIONARY_THRESHOLD", "MaxTrackGap", "hold_absent_poses", "is_stationary", "loaded_camera",
-    "loaded_intrinsics", "majority_label", "nearest_index", "read_image", "require_files", "resample_track", "thin_points",
-    # LiDAR beams (docs/lidar.md)
-    "BeamModel", "RangeImage", "assign_beams", "estimate_azimuth_resolution", "estimate_elevations",
-    "points_in_sensor_frame", "range_image", "spherical",
-    "ALPHA_THRESHOLD", "MAX_ALPHA", "TILE_SIZE", "TRANSMITTANCE_MIN", "NativeExtension", "PluginLoadError", "Plugins",
-    "PluginSelection", "build_error_line", "interpolate_rotations", "rigid", "row_sparse", "safe_pickle",
-    "ssim_map",
+    "ALPHA_THRESHOLD", "CAPABILITIES", "CATEGORIES", "CULL_SIGMAS", "GAUSSIAN_KEYS", "MAX_ALPHA",
+    "STATIONARY_THRESHOLD", "TILE_SIZE", "TRANSMITTANCE_MIN", "ActorEdits", "ActorNode", "ActorPoses", "ActorState",
+    "ActorTrack", "BackgroundConfig", "BeamModel", "BoxActorConfig", "BoxActorNode", "Camera", "CameraSequence",
+    "CheckpointError", "CommandSpec", "ConfigError", "Dataparser", "DataparserConfig", "DataparserSpec",
+    "DeformationMLP", "Drawn", "EditedActor", "EnvironmentNode", "FusedTrainingRasterizer", "GaussianNode",
+    "GaussianNodeConfig", "Gaussians", "HumanPoseSequence", "ImageCache", "ImageReadError", "InferenceRasterizer",
+    "InstantiateConfig", "LidarSweeps", "LogDataparserConfig", "LossContext", "LossSpec", "MaxTrackGap",
+    "MethodConfig", "MethodSpec", "MissingFileError", "NativeExtension", "Node", "NodeConfig", "NodeContext",
+    "NodeOutput", "NodeTypeSpec", "ParamGroup", "Placement", "PluginLoadError", "Plugins", "PluginSelection",
+    "PoseEstimatorSpec", "RangeImage", "RasterInputError", "Rasterizer", "RasterizerSpec", "RasterSettings",
+    "Reconstruction", "Registry", "RenderOutput", "RunDirectory", "RunDirectoryError", "SceneData",
+    "SceneDataError", "SceneTime", "SceneWriterSpec", "Splats", "SsimRasterizer", "TrainConfig", "Trainer",
+    "TrainerConfig", "TrainObserverSpec", "UserError", "View", "assign_beams", "atomic_write_bytes",
+    "atomic_write_text", "axis_angle_to_rotmat", "axis_rotation", "bracket", "build_error_line",
+    "check_raster_inputs", "colour_from_images", "estimate_azimuth_resolution", "estimate_elevations", "far_shell",
+    "first_pose_world", "frame_blend", "frame_range", "gaussian_reach", "hold_absent_poses", "holdout_split",
+    "hookimpl", "image_size", "in_frustum", "init_background_params", "init_gaussian_params", "interpolate_poses",
+    "interpolate_rotations", "interpolate_track", "invert_se3", "is_stationary", "knn_scales",
+    "lidar_points_for_init", "loaded_camera", "loaded_intrinsics", "majority_label", "may_be_drawn",
+    "nearest_index", "parse_device", "placed_output", "points_in_box", "points_in_sensor_frame",
+    "positional_encoding", "quat_multiply", "quat_to_rotmat", "quat_to_se3", "range_image", "read_image",
+    "require_files", "resample_track", "rgb_to_sh0", "rigid", "rot_z", "rotmat_to_axis_angle", "rotmat_to_quat",
+    "row_sparse", "safe_pickle", "segment_max", "slerp_rotmats", "spherical", "ssim_map", "thin_points",
+    "to_tensor", "track_displacement", "train_frame_bracket", "transform_instances", "usable_track",
+    "user_cache_dir", "visible_in_cameras", "voxel_downsample", "write_png",
 ]

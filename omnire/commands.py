@@ -24,8 +24,9 @@ def train_main(argv: list[str], plugins) -> int:
     config = parse_train_args(argv, plugins)
     console = output_console()
     trainer = Trainer(config, plugins, argv=argv)
-    console.print(f"run directory: {trainer.run_dir}  rasterizer: {trainer.model.rasterizer.name}  "
-                  f"gaussians: {trainer.model.num_gaussians()}  nodes: {list(trainer.model.nodes)}")
+    console.print(f"run directory: {trainer.run_dir}  rasterizer: {trainer.recon.rasterizer_name}  "
+                  f"gaussians: {trainer.recon.num_gaussians()}  nodes: {list(trainer.recon.nodes)}")
+    console.print(f"rasterizer paths: {trainer.recon.rasterizer_paths()}", highlight=False)
     result = trainer.train()
     console.print(format_table(result, f"{config.method_name} on {trainer.scene.name} at step {trainer.step}"))
     if len(trainer.scene.cameras) > 1 and (cameras := format_camera_table(result)) is not None:
@@ -153,14 +154,18 @@ def render_main(argv: list[str], plugins) -> int:
 
 
 def plugins_main(argv: list[str], plugins) -> int:
+    from omnire.rasterization import summarize_paths
+
     console = output_console()
     for attr, registry in plugins.registries().items():
         table = Table(title=f"{attr.replace('_', ' ')}")
-        for col in ("name", "description", "distribution", "version"):
+        rasterizers = attr == "rasterizers"  # and which path each optional capability takes
+        for col in ("name", "description", "distribution", "version") + (("paths",) if rasterizers else ()):
             table.add_column(col)
         for name, spec in registry.items():
             prov = registry.provenance(name)
-            table.add_row(name, spec.description, prov.distribution, prov.version)
+            table.add_row(name, spec.description, prov.distribution, prov.version,
+                          *((summarize_paths(spec.capabilities),) if rasterizers else ()))
         console.print(table)
     if plugins.failures:
         table = Table(title="plugins that failed to load", style="red")

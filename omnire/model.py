@@ -100,7 +100,7 @@ class SceneModel(nn.Module):
     """The nodes of one scene, and how a view of them is rendered.
 
     ``use_fused_training`` (default True; an instance may set it False): take the fused
-    training path (:meth:`fused_training`) when the rasterizer offers it; False forces
+    training path (:meth:`fused_training`) when the rasterizer declares it; False forces
     :meth:`assemble` + :meth:`composite` with autograd (comparisons, ``omnire bench step``).
 
     Args:
@@ -111,17 +111,20 @@ class SceneModel(nn.Module):
         images: ImageCache for data-driven initialisation; None when restoring a checkpoint.
         rasterizer, device, seed: as named.
         restoring: build empty nodes to receive a checkpoint (no LiDAR or image reading).
+        capabilities: the optional paths the rasterizer's spec declares
+            (:data:`omnire.rasterization.CAPABILITIES`); only those are taken.
     """
 
     use_fused_training: bool = True
 
     def __init__(self, method, scene: SceneData, specs: dict[str, Any], images, rasterizer: Rasterizer,
                  device: torch.device, seed: int = 0, assignment: Optional[dict[str, list[str]]] = None,
-                 restoring: bool = False) -> None:
+                 restoring: bool = False, capabilities: frozenset[str] = frozenset()) -> None:
         super().__init__()
         self.method = method
         self.scene = scene
         self.rasterizer = rasterizer
+        self.capabilities = frozenset(capabilities)
         self.device = device
         if assignment is None:
             assigned = assign_tracks(scene, specs)
@@ -256,15 +259,16 @@ class SceneModel(nn.Module):
 
     def fast_inference(self) -> bool:
         """True when renders take the inference path: autograd is off and the rasterizer
-        renders raw Gaussians itself (``rasterize_gaussians``: activation, SH colour and view
-        culling natively, nothing kept for a backward pass). Same pixels as the training path
+        declares the ``inference`` capability (``rasterize_gaussians``: raw Gaussians,
+        activation, SH colour and view culling natively, nothing kept for a backward pass). Same pixels as the training path
         up to float rounding (tests: plugins/cpu-rasterizer/tests/test_cpu_raster_inference.py,
         plugins/sim/tests/test_fast_render.py)."""
-        return not torch.is_grad_enabled() and hasattr(self.rasterizer, "rasterize_gaussians")
+        return not torch.is_grad_enabled() and "inference" in self.capabilities
 
     def fused_training(self) -> bool:
         """True when renders with autograd take the fused training path: the rasterizer
-        renders raw Gaussians in parts with gradients (``rasterize_gaussians_train``:
+        declares ``fused_training`` and renders raw Gaussians in parts with gradients
+        (``rasterize_gaussians_train``:
         activation, SH colour and view culling in its kernel, nothing concatenated). Same
         pixels and gradients as :meth:`gather` + :meth:`composite` up to float rounding, and
         the same densification statistics: the slices cover the node outputs uncut, rows
@@ -273,7 +277,7 @@ class SceneModel(nn.Module):
         plugins/cpu-rasterizer/tests/test_fused_training.py). ``use_fused_training = False``
         turns it off."""
         return (self.use_fused_training and torch.is_grad_enabled()
-                and hasattr(self.rasterizer, "rasterize_gaussians_train"))
+                and "fused_training" in self.capabilities)
 
     def render_parts(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Camera, t: SceneTime,
                      sh_degree: int = 3, hidden: frozenset[str] = frozenset()) -> RenderResult:

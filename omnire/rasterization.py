@@ -1,7 +1,20 @@
 """The rasterizer interface every backend implements (reference PyTorch, native CPU, gsplat).
 
 A rasterizer turns activated 3D Gaussians plus one pinhole camera into an image. Backends
-register a :class:`~omnire.registry.RasterizerSpec`; :func:`select_rasterizer` picks one.
+register a :class:`~omnire.registry.RasterizerSpec`; :func:`select_backend` picks one.
+
+Every backend implements :class:`Rasterizer` (``rasterize``, contract below). A backend may
+also offer the optional paths of :data:`CAPABILITIES`, each a protocol of its own, and
+declares the ones it offers in its spec's ``capabilities``: the runtime takes a path only
+when it is declared, and a backend declaring a path it lacks is refused (at registration when
+its factory is the class, else when it is built). The paths give the same pixels as
+``rasterize`` up to float rounding; they only save time and memory:
+
+- ``inference`` (:class:`InferenceRasterizer`): renders raw Gaussians in parts under
+  ``torch.no_grad()`` (activation, SH colour and view culling in the backend).
+- ``fused_training`` (:class:`FusedTrainingRasterizer`): the same with gradients, for
+  the training step.
+- ``ssim`` (:class:`SsimRasterizer`): a native SSIM map for the D-SSIM loss.
 
 Contract of :meth:`Rasterizer.rasterize(splats, camera, settings)` (N Gaussians, D colour
 channels, image H x W):
@@ -42,12 +55,16 @@ transmittance would drop below 1e-4. Non-finite inputs raise :class:`RasterInput
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional, Protocol
+from typing import TYPE_CHECKING, Optional, Protocol
 
 import torch
 
 from omnire.camera import Camera
 from omnire.errors import ConfigError
+
+if TYPE_CHECKING:
+    from omnire.gaussians import Gaussians
+    from omnire.placement import Placement
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 MAX_ALPHA = 0.99
@@ -102,6 +119,94 @@ class Rasterizer(Protocol):
         ...
 
 
+class InferenceRasterizer(Protocol):
+    """The ``inference`` capability: raw Gaussians (unactivated, SH coefficients) of several
+    node outputs rendered without gradients. Returns the image and how many rows it drew."""
+
+    def rasterize_gaussians(self, parts: list["Gaussians"], camera: Camera, sh_degree: int,
+                            settings: RasterSettings = RasterSettings(), cull: bool = True
+                            ) -> tuple[RenderOutput, int]:
+        ...
+
+
+class FusedTrainingRasterizer(Protocol):
+    """The ``fused_training`` capability: :class:`InferenceRasterizer`'s path with gradients
+    to the parts' raw parameters; ``moved`` (rotation (3, 3), translation (3,)) moves every
+    Gaussian first (a camera-pose correction), ``placements`` (one per part, or None) draws a
+    part's box-local rows under its poses."""
+
+    def rasterize_gaussians_train(self, parts: list["Gaussians"], camera: Camera, sh_degree: int,
+                                  settings: RasterSettings = RasterSettings(), cull: bool = True,
+                                  moved: Optional[tuple[torch.Tensor, torch.Tensor]] = None,
+                                  placements: Optional[list[Optional["Placement"]]] = None
+                                  ) -> tuple[RenderOutput, int]:
+        ...
+
+
+class SsimRasterizer(Protocol):
+    """The ``ssim`` capability: (H, W, C) x2 -> (H, W, 1) SSIM map with the contract and
+    numbers of :func:`omnire.losses.ssim_map`."""
+
+    def ssim_map(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        ...
+
+
+@dataclasses.dataclass(frozen=True)
+class Capability:
+    """An optional rasterizer path: the method that provides it and what a run without it does."""
+
+    method: str
+    protocol: type
+    without: str
+
+
+CAPABILITIES: dict[str, Capability] = {
+    "inference": Capability("rasterize_gaussians", InferenceRasterizer,
+                            "renders without gradients concatenate the node outputs and call rasterize"),
+    "fused_training": Capability("rasterize_gaussians_train", FusedTrainingRasterizer,
+                                 "training steps concatenate the node outputs and call rasterize (autograd)"),
+    "ssim": Capability("ssim_map", SsimRasterizer, "the D-SSIM loss uses omnire.losses.ssim_map (PyTorch)"),
+}
+"""The optional rasterizer paths by capability name (see the module docstring)."""
+
+
+def lacking(backend, capabilities) -> list[str]:
+    """The capabilities among ``capabilities`` that ``backend`` (a class or an instance)
+    has no method for."""
+    return [c for c in sorted(capabilities) if not callable(getattr(backend, CAPABILITIES[c].method, None))]
+
+
+def describe_paths(capabilities: frozenset[str]) -> str:
+    """One line: which path each optional capability takes (for ``omnire plugins`` and the
+    run log)."""
+    return "; ".join(f"{name}: {'native ' + c.method if name in capabilities else 'missing, so ' + c.without}"
+                     for name, c in CAPABILITIES.items())
+
+
+def summarize_paths(capabilities: frozenset[str]) -> str:
+    """Short form of :func:`describe_paths` (a table cell)."""
+    missing = [c for c in CAPABILITIES if c not in capabilities]
+    have = [c for c in CAPABILITIES if c in capabilities]
+    return (f"rasterize + {', '.join(have)}" if have else "rasterize only") + (
+        f"; missing: {', '.join(missing)}" if missing else "")
+
+
+@dataclasses.dataclass(frozen=True)
+class RasterBackend:
+    """A built rasterizer and the optional paths its spec declares (checked present)."""
+
+    rasterizer: Rasterizer
+    capabilities: frozenset[str]
+
+    @property
+    def name(self) -> str:
+        return self.rasterizer.name
+
+    def describe(self) -> str:
+        """For the run log: the backend and which path each capability takes."""
+        return f"rasterizer {self.name}: {describe_paths(self.capabilities)}"
+
+
 def check_raster_inputs(splats: Splats, camera: Camera, settings: RasterSettings) -> None:
     """Boundary check shared by all backends: shapes, dtypes, finiteness."""
     means, quats, scales, opacities, colors = (splats.means, splats.quats, splats.scales, splats.opacities,
@@ -140,7 +245,23 @@ def check_raster_inputs(splats: Splats, camera: Camera, settings: RasterSettings
 
 
 def select_rasterizer(plugins, name: str = "auto", device: torch.device | str = "cpu", **kwargs) -> Rasterizer:
-    """Build the rasterizer ``name``, or with ``auto`` the available one of highest priority.
+    """The rasterizer of :func:`select_backend` (same arguments)."""
+    return select_backend(plugins, name, device, **kwargs).rasterizer
+
+
+def build_backend(spec, **kwargs) -> RasterBackend:
+    """Build ``spec``'s rasterizer; a backend lacking a capability its spec declares is refused."""
+    rasterizer = spec.factory(**kwargs)
+    missing = lacking(rasterizer, spec.capabilities)
+    if missing:
+        raise ConfigError(f"rasterizer {spec.name!r} declares capabilities {missing} but its object has no "
+                          + ", ".join(CAPABILITIES[c].method for c in missing) + "; fix its RasterizerSpec")
+    return RasterBackend(rasterizer, frozenset(spec.capabilities))
+
+
+def select_backend(plugins, name: str = "auto", device: torch.device | str = "cpu", **kwargs) -> RasterBackend:
+    """Build the rasterizer ``name``, or with ``auto`` the available one of highest priority,
+    with its declared capabilities.
 
     An ``available()`` that raises is reported as a failure of its plugin and that backend is
     skipped (unless it is the one asked for by name). Raises :class:`ConfigError` naming every
@@ -153,7 +274,7 @@ def select_rasterizer(plugins, name: str = "auto", device: torch.device | str = 
         ok, reason = spec.available(device)
         if not ok:
             raise ConfigError(f"--method.rasterizer {name}: not available on {device}: {reason}")
-        return spec.factory(**kwargs)
+        return build_backend(spec, **kwargs)
     reasons = []
     for spec in sorted(registry, key=lambda s: -s.priority):
         probe = plugins.call(registry, spec.name, "rasterizer available()", lambda spec=spec: spec.available(device))
@@ -162,7 +283,7 @@ def select_rasterizer(plugins, name: str = "auto", device: torch.device | str = 
             continue
         ok, reason = probe
         if ok:
-            return spec.factory(**kwargs)
+            return build_backend(spec, **kwargs)
         reasons.append(f"{spec.name}: {reason}")
     raise ConfigError(f"no rasterizer available on {device}: " + "; ".join(reasons) if reasons else
                       "no rasterizer registered (install omnire-rasterizer-torch)")

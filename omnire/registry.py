@@ -127,13 +127,33 @@ class NodeTypeSpec:
 @dataclasses.dataclass(frozen=True)
 class RasterizerSpec:
     """A rasterizer backend. ``available(device)`` returns ``(ok, reason)``; ``factory(**kw)``
-    builds it. ``auto`` selection takes the available one with the highest priority."""
+    builds it. ``auto`` selection takes the available one with the highest priority.
+
+    ``capabilities``: the optional paths it offers beyond ``rasterize``, names of
+    :data:`omnire.rasterization.CAPABILITIES` (``inference``, ``fused_training``, ``ssim``).
+    An unknown name, or (when ``factory`` is the class) a declared path the class has no
+    method for, refuses the spec here; a lazy factory's object is checked when built."""
 
     name: str
     description: str
     factory: Callable[..., Any]
     available: Callable[[Any], tuple[bool, str]]
     priority: int = 0
+    capabilities: frozenset[str] = frozenset()
+
+    def __post_init__(self) -> None:
+        from omnire.rasterization import CAPABILITIES, lacking
+
+        object.__setattr__(self, "capabilities", frozenset(self.capabilities))
+        unknown = sorted(self.capabilities - set(CAPABILITIES))
+        if unknown:
+            raise RegistryError(f"rasterizer {self.name!r}: unknown capabilities {unknown}; known: "
+                                f"{sorted(CAPABILITIES)}")
+        missing = lacking(self.factory, self.capabilities) if isinstance(self.factory, type) else []
+        if missing:
+            raise RegistryError(f"rasterizer {self.name!r} declares capabilities {missing} but "
+                                f"{self.factory.__name__} has no "
+                                + ", ".join(CAPABILITIES[c].method for c in missing))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -6,7 +6,16 @@ track assignment, data-driven initialisation) or loaded from a run directory
 (:meth:`Reconstruction.from_run`: run.json + a checkpoint, without a trainer, an optimiser
 or reading any training image), and renders any camera at any moment:
 ``render(camera, time) -> RenderResult``. The trainer holds one and adds optimisation;
-evaluation, rendering, benchmarks, simulation, export and the viewer use its public methods.
+evaluation, rendering, benchmarks, simulation, export and the viewer use its public methods
+and never reach into its model.
+
+What is drawn at a moment is asked in one way, :meth:`Reconstruction.drawn`: it yields one
+:class:`Drawn` per group a node draws (every non-actor Gaussian node as recorded, per actor
+node the actors as recorded, each edited actor alone in its edited state, then actors
+inserted from other runs), each with its node, actor state and moment. Edits come from an
+:class:`ActorEdits` (``omnire_sim.Simulation`` is one); without, the recording is drawn.
+``render`` renders exactly those groups (:meth:`node_outputs` + :meth:`render_outputs`), so
+rendering, the simulation, export and the viewer agree on what is there.
 
 Example::
 
@@ -16,17 +25,102 @@ Example::
 """
 from __future__ import annotations
 
+import copy
+import logging
 from pathlib import Path
-from typing import Optional
+from typing import Collection, Iterable, Iterator, Mapping, Optional, Protocol
 
 import torch
 
 from omnire.camera import Camera
 from omnire.data.scene import SceneData, SceneTime, View
 from omnire.model import RenderResult, SceneModel, enabled_node_specs
-from omnire.rasterization import select_rasterizer
+from omnire.nodes.actors import ActorNode, ActorState
+from omnire.nodes.base import EnvironmentNode, Node, NodeOutput
+from omnire.rasterization import describe_paths, select_backend
 from omnire.rundir import RunDirectory, RunInfo, find_checkpoint
 from omnire.runconfig import TrainConfig, parse_train_args
+
+log = logging.getLogger("omnire.runtime")
+
+
+class EditedActor(Protocol):
+    """One actor an :class:`ActorEdits` draws itself: ``key`` (its track id, or an inserted
+    actor's id), the node that draws it (``node_name`` of ``owner``, whose ``node``) and,
+    unless ``removed``, its state at a moment."""
+
+    key: str
+    removed: bool
+    node_name: str
+    node: ActorNode
+    owner: "Reconstruction"
+
+    def state(self, seconds: float, time: SceneTime) -> Optional[tuple[ActorState, SceneTime]]:
+        """(ActorState of one actor, the moment its node draws it at) at scene moment ``time``
+        (``seconds`` since the log's first frame), or None when it is absent then."""
+        ...
+
+
+class ActorEdits(Protocol):
+    """Edits of the actors a :class:`Reconstruction` draws (the simulation's resolved
+    scenario implements it; the core does not depend on the simulation)."""
+
+    def edited(self, node_name: str) -> Mapping[int, EditedActor]:
+        """The actors of this run's node ``node_name`` drawn by the edits instead of as
+        recorded, by instance index (removed ones included)."""
+        ...
+
+    def inserted(self) -> Iterable[EditedActor]:
+        """Actors added to the scene (drawn by their own run's node), in drawing order."""
+        ...
+
+
+class Drawn:
+    """One group a node draws at a moment (see the module docstring).
+
+    Attributes:
+        label: the part's name: the node name; ``<node>:<key>`` for an edited actor;
+            ``insert:<key>`` for an inserted one.
+        node_name, node, owner: the node drawing it (``owner``: the run it belongs to, another
+            run for inserted actors).
+        moment: the moment the node draws it at (an actor's own clock when edited).
+        inserted: an actor from another run.
+        recorded: the node's whole recording at ``moment``, drawn as the node draws itself.
+    """
+
+    def __init__(self, label: str, node_name: str, node: Node, owner: "Reconstruction", moment: SceneTime,
+                 state: Optional[ActorState] = None, keys: Optional[tuple[str, ...]] = None,
+                 recorded: bool = False, inserted: bool = False) -> None:
+        self.label, self.node_name, self.node, self.owner, self.moment = label, node_name, node, owner, moment
+        self.recorded, self.inserted = recorded, inserted
+        self._state, self._keys = state, keys
+
+    @property
+    def is_actor(self) -> bool:
+        return isinstance(self.node, ActorNode)
+
+    @property
+    def state(self) -> Optional[ActorState]:
+        """The actors drawn (P of them: ids (P,), R (P, 3, 3), t (P, 3), body); None for a
+        node without actors. Read from the node when the group is its recording."""
+        if self._state is None and self.recorded and self.is_actor:
+            self._state = self.node.state_at(self.moment)
+        return self._state
+
+    @property
+    def keys(self) -> tuple[str, ...]:
+        """(P,) the track / insert ids of :attr:`state`'s actors; () for a node without actors."""
+        if self._keys is None:
+            state = self.state
+            self._keys = () if state is None else tuple(self.node.track_ids[i] for i in state.ids.tolist())
+        return self._keys
+
+    def output(self, camera: Optional[Camera] = None, step: Optional[int] = None) -> Optional[NodeOutput]:
+        """The node's world-space Gaussians of this group (``camera``: what the node may skip
+        as unseen; ``step``: the training step of a recording)."""
+        if self.recorded or not self.is_actor:
+            return self.node.gaussians_at(self.moment, camera, step)
+        return self.node.gaussians_for(self.state, self.moment, camera)
 
 
 class Reconstruction:
@@ -34,16 +128,25 @@ class Reconstruction:
 
     Attributes:
         scene: the :class:`SceneData`.
-        model: the :class:`~omnire.model.SceneModel` (nodes by name in ``model.nodes``).
+        model: the :class:`~omnire.model.SceneModel` (the core's; tools use the methods here).
         method: the method config.
-        step: training steps behind the current state (0 for a fresh build).
+        step: training steps behind the current state (0 for a fresh build); the one step
+            counter of a run (the trainer advances it).
+        run_info, config, run_dir, checkpoint: the run it was loaded from
+            (:meth:`from_run`); None when built fresh.
     """
 
-    def __init__(self, scene: SceneData, model: SceneModel, method, step: int = 0) -> None:
+    def __init__(self, scene: SceneData, model: SceneModel, method, step: int = 0, *,
+                 run_info: Optional[RunInfo] = None, config: Optional[TrainConfig] = None,
+                 run_dir: Optional[RunDirectory] = None, checkpoint: Optional[Path] = None) -> None:
         self.scene = scene
         self.model = model
         self.method = method
         self.step = step
+        self.run_info = run_info
+        self.config = config
+        self.run_dir = run_dir
+        self.checkpoint = checkpoint
         self.device = model.device
         # cameras as tensors on the device, converted once
         self._K = [torch.as_tensor(c.intrinsics, dtype=torch.float32, device=self.device) for c in scene.cameras]
@@ -58,20 +161,25 @@ class Reconstruction:
         for name, spec in specs.items():
             if spec.prepare is not None:
                 spec.prepare(scene, plugins, method.nodes[name])
-        rasterizer = select_rasterizer(plugins, method.rasterizer, device)
-        model = SceneModel(method, scene, specs, images, rasterizer, device, seed=seed)
+        backend = select_backend(plugins, method.rasterizer, device)
+        log.info(backend.describe())
+        model = SceneModel(method, scene, specs, images, backend.rasterizer, device, seed=seed,
+                           capabilities=backend.capabilities)
         return cls(scene, model, method)
 
     @classmethod
     def restore(cls, config: TrainConfig, scene: SceneData, plugins, device: torch.device, assignment: dict,
-                state: dict, assign: bool = False) -> "Reconstruction":
+                state: dict, assign: bool = False, *, run_info: Optional[RunInfo] = None,
+                run_dir: Optional[RunDirectory] = None, checkpoint: Optional[Path] = None) -> "Reconstruction":
         """The scene graph of a checkpoint ``state`` (with the recorded track ``assignment``):
-        nodes are built empty, then filled from the state (``assign``: see :meth:`load_state`)."""
+        nodes are built empty, then filled from the state (``assign``: see :meth:`load_state`).
+        ``run_info``, ``run_dir``, ``checkpoint``: where it was read from, if from a run."""
         specs = enabled_node_specs(config.method, plugins.node_types)
-        rasterizer = select_rasterizer(plugins, config.method.rasterizer, device)
-        model = SceneModel(config.method, scene, specs, None, rasterizer, device, assignment=assignment,
-                           restoring=True)
-        recon = cls(scene, model, config.method)
+        backend = select_backend(plugins, config.method.rasterizer, device)
+        model = SceneModel(config.method, scene, specs, None, backend.rasterizer, device, assignment=assignment,
+                           restoring=True, capabilities=backend.capabilities)
+        recon = cls(scene, model, config.method, run_info=run_info, config=config, run_dir=run_dir,
+                    checkpoint=checkpoint)
         recon.load_state(state, assign=assign)
         return recon
 
@@ -90,11 +198,23 @@ class Reconstruction:
         dev = torch.device("cpu" if read_only else (device or config.trainer.device))
         _, path, state = find_checkpoint(checkpoint or run.path, map_location=dev, mmap=read_only)
         scene = config.dataparser.setup().load()
-        recon = cls.restore(config, scene, plugins, dev, info.node_assignment, state, assign=read_only)
+        recon = cls.restore(config, scene, plugins, dev, info.node_assignment, state, assign=read_only,
+                            run_info=info, run_dir=run, checkpoint=path)
         if read_only:
             recon.model.requires_grad_(False)
-        recon.run_info, recon.config, recon.run_dir, recon.checkpoint = info, config, run, path
         return recon
+
+    def snapshot(self) -> "Reconstruction":
+        """A copy whose model tensors are independent of this one's and take no gradients
+        (scene data, method, rasterizer and run record shared): e.g. a viewer showing a run
+        while it trains."""
+        model = self.model
+        memo = {id(model.scene): model.scene, id(model.rasterizer): model.rasterizer, id(model.method): model.method}
+        with torch.no_grad():
+            copied = copy.deepcopy(model, memo)
+        copied.requires_grad_(False)
+        return Reconstruction(self.scene, copied, self.method, step=self.step, run_info=self.run_info,
+                              config=self.config, run_dir=self.run_dir, checkpoint=self.checkpoint)
 
     # ------------------------------------------------------------------ state
     def load_state(self, state: dict, assign: bool = False) -> None:
@@ -115,6 +235,50 @@ class Reconstruction:
         """Track ids per node type."""
         return self.model.assignment
 
+    @property
+    def nodes(self) -> dict[str, Node]:
+        """Every node by name, in drawing order."""
+        return dict(self.model.nodes)
+
+    def actor_nodes(self) -> dict[str, ActorNode]:
+        """The nodes drawing actors (boxes under poses), by name."""
+        return {n: m for n, m in self.model.nodes.items() if isinstance(m, ActorNode)}
+
+    def environment_nodes(self) -> dict[str, EnvironmentNode]:
+        """The nodes composited under the Gaussians (e.g. the sky), by name."""
+        return self.model.environment_nodes()
+
+    def find_actor(self, track: str) -> Optional[tuple[str, ActorNode, int]]:
+        """(node name, node, instance index) of the actor with track id ``track``, or None
+        (not in the scene, or drawn as part of the background)."""
+        for name, node in self.actor_nodes().items():
+            if track in node.track_ids:
+                return name, node, node.track_ids.index(track)
+        return None
+
+    @property
+    def scene_radius(self) -> float:
+        """The scene's scale in metres (:func:`omnire.model.scene_radius`)."""
+        return self.model.scene_radius
+
+    @property
+    def rasterizer_name(self) -> str:
+        return self.model.rasterizer.name
+
+    def rasterizer_paths(self) -> str:
+        """Which path each optional rasterizer capability takes (one line)."""
+        return describe_paths(self.model.capabilities)
+
+    @property
+    def use_fused_training(self) -> bool:
+        """Whether renders with autograd take the rasterizer's fused training path when it
+        declares one (:meth:`omnire.model.SceneModel.fused_training`); False for comparisons."""
+        return self.model.use_fused_training
+
+    @use_fused_training.setter
+    def use_fused_training(self, value: bool) -> None:
+        self.model.use_fused_training = bool(value)
+
     def num_gaussians(self) -> int:
         return self.model.num_gaussians()
 
@@ -132,16 +296,83 @@ class Reconstruction:
         """The moment of (possibly fractional) ``frame``."""
         return self.scene.time_of_frame(frame)
 
-    def render(self, camera: Camera, time: SceneTime, step: Optional[int] = None,
-               hidden: frozenset[str] = frozenset(), sh_degree: Optional[int] = None) -> RenderResult:
-        """Render the scene at ``time`` through ``camera``. ``step``: the training step (for
-        warm-up schedules; None renders the trained model); ``hidden``: node names not drawn."""
+    def time_since_start(self, seconds: float) -> SceneTime:
+        """The moment ``seconds`` after the log's first frame (clamped to the log)."""
+        return self.scene.time_since_start(seconds)
+
+    # ------------------------------------------------------------------ drawing
+    def drawn(self, time: SceneTime, edits: Optional[ActorEdits] = None, only: Optional[Collection[str]] = None,
+              hidden: Collection[str] = frozenset()) -> Iterator[Drawn]:
+        """Every group drawn at scene moment ``time``, in drawing order: the Gaussian nodes in
+        order (a node without actors as recorded; an actor node's recording, or with
+        ``edits`` its unedited actors together and then each edited actor alone, removed
+        ones left out), then the actors ``edits`` inserts. ``only``: just the actors with
+        these keys (track / insert ids), no node without actors; ``hidden``: node names of
+        this run not drawn."""
+        seconds = time.seconds - float(self.scene.frame_timestamps[0])
+        for name, node in self.model.gaussian_nodes().items():
+            if name in hidden:
+                continue
+            if not isinstance(node, ActorNode):
+                if only is None:
+                    yield Drawn(name, name, node, self, time)
+                continue
+            edited = edits.edited(name) if edits is not None else {}
+            if not edited and only is None:
+                yield Drawn(name, name, node, self, time, recorded=True)
+                continue
+            state = node.state_at(time)
+            keep = [k for k, i in enumerate(state.ids.tolist())
+                    if i not in edited and (only is None or node.track_ids[i] in only)]
+            if keep:
+                if len(keep) < len(state.ids):
+                    state = state.select(torch.tensor(keep, dtype=torch.long, device=state.ids.device))
+                yield Drawn(name, name, node, self, time, state)
+            for actor in edited.values():
+                if not actor.removed and (only is None or actor.key in only):
+                    yield from _edited(actor, f"{name}:{actor.key}", seconds, time, inserted=False)
+        for actor in edits.inserted() if edits is not None else ():
+            if not actor.removed and (only is None or actor.key in only):
+                yield from _edited(actor, f"insert:{actor.key}", seconds, time, inserted=True)
+
+    def node_outputs(self, drawn: Iterable[Drawn], camera: Optional[Camera], time: SceneTime,
+                     step: Optional[int] = None) -> list[tuple[str, Optional[NodeOutput]]]:
+        """(label, node output or None) of each group of ``drawn`` at scene moment ``time``,
+        each node told what ``camera`` sees (:meth:`~omnire.model.SceneModel.node_camera`)."""
+        seen_by = self.model.node_camera(camera, time)
+        return [(d.label, d.output(seen_by, step)) for d in drawn]
+
+    def render_outputs(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Camera, time: SceneTime,
+                       step: Optional[int] = None, sh_degree: Optional[int] = None,
+                       hidden: Collection[str] = frozenset()) -> RenderResult:
+        """Rasterize node outputs ``parts`` (:meth:`node_outputs`) through ``camera`` and
+        composite the environment nodes not in ``hidden`` at ``time`` under them
+        (:meth:`~omnire.model.SceneModel.render_parts`: the rasterizer's declared paths)."""
         degree = self.sh_degree(step) if sh_degree is None else sh_degree
-        return self.model.render(camera, time, degree, step=step, hidden=hidden)
+        return self.model.render_parts(parts, camera, time, degree, frozenset(hidden))
+
+    def render(self, camera: Camera, time: SceneTime, step: Optional[int] = None,
+               hidden: frozenset[str] = frozenset(), sh_degree: Optional[int] = None,
+               edits: Optional[ActorEdits] = None, only: Optional[Collection[str]] = None) -> RenderResult:
+        """Render what :meth:`drawn` yields at ``time`` through ``camera``. ``step``: the
+        training step (for warm-up schedules; None renders the trained model); ``hidden``:
+        node names not drawn; ``edits``, ``only``: as :meth:`drawn` (with ``only`` the
+        environment is left out too)."""
+        parts = self.node_outputs(self.drawn(time, edits, only, hidden), camera, time, step)
+        if only is not None:
+            hidden = frozenset(hidden) | frozenset(self.environment_nodes())
+        return self.render_outputs(parts, camera, time, step, sh_degree, hidden)
 
     def render_view(self, view: View, step: Optional[int] = None) -> RenderResult:
         """Render the recorded camera and moment of ``view``."""
         return self.render(self.camera(view), self.time(view.frame), step=step)
+
+
+def _edited(actor: EditedActor, label: str, seconds: float, time: SceneTime, inserted: bool) -> Iterator[Drawn]:
+    """The group of one edited actor at scene moment ``time``, if present then."""
+    got = actor.state(seconds, time)
+    if got is not None:
+        yield Drawn(label, actor.node_name, actor.node, actor.owner, got[1], got[0], (actor.key,), inserted=inserted)
 
 
 def parse_recorded_args(info: RunInfo, plugins) -> TrainConfig:

@@ -1,6 +1,11 @@
 """Training: a :class:`~omnire.runtime.Reconstruction` plus optimisation, evaluation and
 checkpoints, in a run directory (:mod:`omnire.rundir`).
 
+A training step runs through the named stages of :data:`STEP_STAGES` in order (one method
+each, ``stage_<name>``, passing a :class:`StepState` along): ``omnire bench step`` times the
+very step training takes, stage by stage. The step counter is the reconstruction's
+(``Trainer.step`` reads ``recon.step``; the ``optimizer`` stage advances it).
+
 Checkpoints hold the model, optimiser moments, densification state and every RNG state, so
 a resumed run continues exactly like an uninterrupted one. Ctrl-C (SIGINT) or SIGTERM
 writes a checkpoint at the current step and stops with :class:`TrainingInterrupted`.
@@ -15,7 +20,7 @@ import math
 import signal
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import torch
 
@@ -26,6 +31,8 @@ from omnire.data.scene import SceneData, SceneTime, View
 from omnire.errors import ConfigError, UserError
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
 from omnire.losses import LossContext, masked_mean, ssim_map
+from omnire.model import RenderResult
+from omnire.nodes.base import NodeOutput
 from omnire.shbands import fit_sh_bands
 from omnire.observations import Observations
 from omnire.resolution import downscale_factor
@@ -35,7 +42,8 @@ from omnire.runconfig import TrainConfig, TrainerConfig, absolute_argv
 from omnire.runtime import Reconstruction, parse_recorded_args
 from omnire.strategy import AbsGradStrategy
 
-__all__ = ["TrainConfig", "Trainer", "TrainerConfig", "TrainingError", "TrainingInterrupted"]
+__all__ = ["STEP_STAGES", "StepState", "TrainConfig", "Trainer", "TrainerConfig", "TrainingError",
+           "TrainingInterrupted"]
 
 log = logging.getLogger("omnire.trainer")
 
@@ -54,6 +62,39 @@ class TrainingInterrupted(UserError):
     def __init__(self, message: str, signum: int) -> None:
         super().__init__(message)
         self.signum = signum
+
+
+STEP_STAGES: tuple[str, ...] = ("prepare", "nodes", "render", "loss", "backward", "densify_stats", "optimizer",
+                                "densify")
+"""The stages of one training step, in order (each is ``Trainer.stage_<name>``):
+
+- ``prepare``: the SH bands stored up to the step's degree, the view's camera at the step's
+  resolution and its moment;
+- ``nodes``: every Gaussian node's output at the moment (``Reconstruction.drawn`` +
+  ``node_outputs``);
+- ``render``: rasterizer forward and environment (``Reconstruction.render_outputs``);
+- ``loss``: loss terms and node regularisers, their sum, and the step's statistics;
+- ``backward``: ``loss.backward()`` (rasterizer backward, autograd of nodes and losses);
+- ``densify_stats``: the AbsGrad statistics (:meth:`AbsGradStrategy.accumulate`);
+- ``optimizer``: the optimisers' step and ``zero_grad``; the step counter advances;
+- ``densify``: densification and pruning when the schedule says so (:meth:`AbsGradStrategy.step`).
+"""
+
+
+@dataclasses.dataclass
+class StepState:
+    """What one training step carries from stage to stage (filled in stage order)."""
+
+    view: View
+    factor: int = 1
+    camera: Optional[Camera] = None
+    time: Optional[SceneTime] = None
+    parts: list[tuple[str, Optional[NodeOutput]]] = dataclasses.field(default_factory=list)
+    result: Optional[RenderResult] = None
+    context: Optional[LossContext] = None
+    terms: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)
+    loss: Optional[torch.Tensor] = None
+    stats: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
 def psnr_from_mse(mse: float) -> float:
@@ -121,7 +162,6 @@ class Trainer:
         self.sampler = torch.Generator().manual_seed(tc.seed + 1)
         self.train_views = self.scene.views(self.scene.train_frames)
         self.test_views = self.scene.views(self.scene.test_frames)
-        self.step = 0
         self.train_seconds = 0.0
         self._sh_bands_degree: Optional[int] = None  # the degree fit_sh_bands last stored bands for
         self.observers: list = []
@@ -188,6 +228,11 @@ class Trainer:
         atomic_write_text(self.run.info_path, info.to_json())
 
     @property
+    def step(self) -> int:
+        """Training steps taken: the reconstruction's counter (the one owner)."""
+        return self.recon.step
+
+    @property
     def run_dir(self) -> Optional[Path]:
         return None if self.run is None else self.run.path
 
@@ -221,7 +266,7 @@ class Trainer:
             sky_trusted=obs.sky_trusted(view, factor) if self.use_sky_masks else None,
             scene_pixels=obs.scene_pixels(view, factor),
             step=self.step,
-            ssim=getattr(self.model.rasterizer, "ssim_map", ssim_map),
+            ssim=self.model.rasterizer.ssim_map if "ssim" in self.model.capabilities else ssim_map,
         )
 
     def resolution_factor(self, step: Optional[int] = None) -> int:
@@ -257,34 +302,59 @@ class Trainer:
                 terms[name] = weight * value
         return terms
 
-    def train_step(self, view: Optional[View] = None) -> dict[str, float]:
-        """One optimisation step on ``view`` (default: a sampled training view)."""
-        view = self.sample_view() if view is None else view
+    def train_step(self, view: Optional[View] = None,
+                   on_stage: Optional[Callable[[str], None]] = None) -> dict[str, float]:
+        """One optimisation step on ``view`` (default: a sampled training view) through the
+        stages of :data:`STEP_STAGES`; ``on_stage(name)`` is called after each (e.g. a
+        benchmark's clock). Returns the step's loss, PSNR and loss terms."""
+        state = StepState(self.sample_view() if view is None else view)
+        for name in STEP_STAGES:
+            getattr(self, f"stage_{name}")(state)
+            if on_stage is not None:
+                on_stage(name)
+        return state.stats
+
+    def stage_prepare(self, s: StepState) -> None:
         self.fit_sh_bands()
-        factor = self.resolution_factor()
-        camera = self.recon.camera(view).downscaled(factor)
-        t = self.recon.time(view.frame)
-        result = self.recon.render(camera, t, step=self.step)
-        ctx = self.loss_context(view, result, factor)
-        terms = self.loss_terms(ctx, result, camera, t)
-        loss = sum(terms.values())
-        if not torch.isfinite(loss):
+        s.factor = self.resolution_factor()
+        s.camera = self.recon.camera(s.view).downscaled(s.factor)
+        s.time = self.recon.time(s.view.frame)
+
+    def stage_nodes(self, s: StepState) -> None:
+        s.parts = self.recon.node_outputs(self.recon.drawn(s.time), s.camera, s.time, self.step)
+
+    def stage_render(self, s: StepState) -> None:
+        s.result = self.recon.render_outputs(s.parts, s.camera, s.time, step=self.step)
+
+    def stage_loss(self, s: StepState) -> None:
+        s.context = self.loss_context(s.view, s.result, s.factor)
+        s.terms = self.loss_terms(s.context, s.result, s.camera, s.time)
+        s.loss = sum(s.terms.values())
+        if not torch.isfinite(s.loss):
             raise TrainingError(
-                f"non-finite loss at step {self.step} (view camera={view.camera} frame={view.frame}; terms "
-                + ", ".join(f"{k}={float(v):.4g}" for k, v in terms.items()) + "); no checkpoint was written"
+                f"non-finite loss at step {self.step} (view camera={s.view.camera} frame={s.view.frame}; terms "
+                + ", ".join(f"{k}={float(v):.4g}" for k, v in s.terms.items()) + "); no checkpoint was written"
             )
-        loss.backward()
-        self.strategy.accumulate(self.model.gaussian_nodes(), result.slices, result.absgrad2d, result.radii,
-                                 camera.width, camera.height)
+        with torch.no_grad():
+            mse = float(masked_mean((s.result.rgb.detach().clamp(0, 1) - s.context.target) ** 2,
+                                    dataclasses.replace(s.context, pixel_weights=None)))
+        s.stats = {"loss": float(s.loss.detach()), "psnr": psnr_from_mse(mse),
+                   **{k: float(v.detach()) for k, v in s.terms.items()}}
+
+    def stage_backward(self, s: StepState) -> None:
+        s.loss.backward()
+
+    def stage_densify_stats(self, s: StepState) -> None:
+        self.strategy.accumulate(self.model.gaussian_nodes(), s.result.slices, s.result.absgrad2d, s.result.radii,
+                                 s.camera.width, s.camera.height)
+
+    def stage_optimizer(self, s: StepState) -> None:
         self.optimizers.step(self.step)
         self.optimizers.zero_grad()
-        self.step += 1
-        self.recon.step = self.step
+        self.recon.step += 1
+
+    def stage_densify(self, s: StepState) -> None:
         self.strategy.step(self.model.gaussian_nodes(), self.optimizers, self.step)
-        with torch.no_grad():
-            mse = float(masked_mean((result.rgb.detach().clamp(0, 1) - ctx.target) ** 2,
-                                    dataclasses.replace(ctx, pixel_weights=None)))
-        return {"loss": float(loss.detach()), "psnr": psnr_from_mse(mse), **{k: float(v.detach()) for k, v in terms.items()}}
 
     def train(self) -> dict:
         """Train to ``max_steps`` (or ``max_seconds``), checkpointing and evaluating on the way;
@@ -434,7 +504,6 @@ class Trainer:
         self.strategy.load_state_dict(state["strategy"])
         torch.set_rng_state(state["rng_torch"])
         self.sampler.set_state(state["rng_sampler"])
-        self.step = int(state["step"])
         self.train_seconds = float(state.get("train_seconds", 0.0))
         self._sh_bands_degree = None
 

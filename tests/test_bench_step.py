@@ -26,10 +26,12 @@ def test_bench_step_times_both_paths(tmp_path, capsys):
                  "--output", str(out)], plugins) == 0
     result = json.loads(out.read_text())
     assert result["gaussians_by_node"]["background"] == 3000 and result["sh_degree"] == 3
+    # real training steps: the step counter advanced once per timed or warm-up step and path
+    assert result["at_step"] == 3000 and result["steps_taken_to"] == 3000 + 2 * 3
     assert set(result["paths"]) == {"fused", "unfused"}
     for stages in result["paths"].values():
-        assert set(stages) == {"nodes", "render", "loss", "backward", "densify_stats", "optimizer", "total",
-                               "total_cpu"}
+        assert set(stages) == {"prepare", "nodes", "render", "loss", "backward", "densify_stats", "optimizer",
+                               "densify", "total", "total_cpu"}
         assert stages["total"]["median_ms"] > 0 and stages["render"]["median_ms"] > 0
     machine = result["machine"]  # what the numbers were measured on
     assert machine["threads"] == 1 and machine["logical_cores"] >= 1

@@ -2,6 +2,7 @@
 separate directory (pip), isolation of broken plugins, strict mode, blocking by name."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -81,18 +82,23 @@ BROKEN = '''
 '''
 
 
-@pytest.fixture(scope="module")
-def installed_test_plugins(tmp_path_factory):
-    root = tmp_path_factory.mktemp("dists")
-    dists = [_write_dist(root, "omnire-test-tiny", "omnire_test_tiny", GOOD),
-             _write_dist(root, "omnire-test-broken", "omnire_test_broken", BROKEN)]
+@contextlib.contextmanager
+def installed_dists(root: Path, dists: dict[str, str]):
+    """Plugin distributions ``{distribution name: plugin.py body}`` pip-installed from
+    ``root`` for the duration (module ``omnire_test_...`` after the name)."""
+    paths = [_write_dist(root, dist, dist.replace("-", "_"), body) for dist, body in dists.items()]
     pip = [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation"]
-    subprocess.run(pip + [str(d) for d in dists], check=True)
+    subprocess.run(pip + [str(d) for d in paths], check=True)
     try:
         yield
     finally:
-        subprocess.run([sys.executable, "-m", "pip", "uninstall", "--quiet", "-y", "omnire-test-tiny",
-                        "omnire-test-broken"], check=True)
+        subprocess.run([sys.executable, "-m", "pip", "uninstall", "--quiet", "-y", *dists], check=True)
+
+
+@pytest.fixture(scope="module")
+def installed_test_plugins(tmp_path_factory):
+    with installed_dists(tmp_path_factory.mktemp("dists"), {"omnire-test-tiny": GOOD, "omnire-test-broken": BROKEN}):
+        yield
 
 
 def run(args, env=None, timeout=600):

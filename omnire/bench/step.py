@@ -6,24 +6,18 @@ and step; the run must have the same method settings and data selection), option
 resizes the background node to ``--gaussians`` rows (seeded resampling with replacement of
 its rows, optimiser state carried along) and puts the step counter at ``--at-step`` (SH
 bands and schedules as at that step, and the SH coefficients stored as training stores them
-then: up to that step's degree, see omnire/shbands.py; densification is not run during the
-benchmark). The
-recorded data of every view it will use is decoded first (a training run has its images
-cached after the first pass over the views). Then it times ``--steps`` steps stage by stage:
-
-- ``nodes``: every Gaussian node's output at the view's moment (``Node.gaussians_at``),
-- ``render``: :meth:`SceneModel.render_parts` (rasterizer forward, environment),
-- ``loss``: loss terms and node regularisers, as :meth:`Trainer.train_step` forms them,
-- ``backward``: ``loss.backward()`` (rasterizer backward, autograd of nodes and losses),
-- ``densify_stats``: the AbsGrad statistics (:meth:`AbsGradStrategy.accumulate`),
-- ``optimizer``: the optimisers' step and ``zero_grad``,
-
-and ``total``, their sum (wall clock; ``total_cpu``: the process's CPU time, less
-sensitive to other processes on a shared machine). With ``--paths fused unfused`` (default: both when the rasterizer
-has a fused training path) the render paths alternate step by step on the same views in one
-process, so a shared machine's load affects them alike. Views are sampled with a seeded
-generator of their own. Medians and quartiles in ms; JSON to ``--output`` (atomic) and a
-table on the console.
+then: up to that step's degree, see omnire/shbands.py). The recorded data of every view it
+will use is decoded first (a training run has its images cached after the first pass over
+the views). Then it runs ``--steps`` real training steps (:meth:`Trainer.train_step`: the
+step's resolution, SH fitting, densification when the schedule says so, the step counter
+advancing) and times each of its named stages (:data:`omnire.trainer.STEP_STAGES`:
+``prepare``, ``nodes``, ``render``, ``loss``, ``backward``, ``densify_stats``,
+``optimizer``, ``densify``) and ``total``, their sum (wall clock; ``total_cpu``: the
+process's CPU time, less sensitive to other processes on a shared machine). With ``--paths
+fused unfused`` (default: both when the rasterizer declares the ``fused_training``
+capability) the render paths alternate step by step on the same views in one process, so a
+shared machine's load affects them alike. Views are sampled with a seeded generator of their
+own. Medians and quartiles in ms; JSON to ``--output`` (atomic) and a table on the console.
 """
 from __future__ import annotations
 
@@ -40,9 +34,10 @@ from omnire.errors import ConfigError
 from omnire.bench.machine import machine_info, machine_line
 from omnire.io.atomic import atomic_write_text
 from omnire.shbands import sh_columns
+from omnire.trainer import STEP_STAGES
 from omnire.ui import output_console
 
-STAGES = ("nodes", "render", "loss", "backward", "densify_stats", "optimizer")
+STAGES = STEP_STAGES
 
 
 @dataclasses.dataclass
@@ -124,36 +119,9 @@ def resize_background(trainer, n: int, seed: int) -> None:
 def time_step(trainer, view, fused: bool) -> tuple[dict[str, float], dict[str, float]]:
     """One training step on ``view`` with the chosen render path: seconds per stage, wall
     clock and process CPU time."""
-    import torch
-
-    model, recon = trainer.model, trainer.recon
-    model.use_fused_training = fused
-    camera, t = recon.camera(view), recon.time(view.frame)
-    marks = []
-
-    def clock():
-        marks.append((time.perf_counter(), time.process_time()))
-
-    clock()
-    parts = model.node_parts(camera, t, trainer.step)
-    clock()
-    result = model.render_parts(parts, camera, t, recon.sh_degree(trainer.step))
-    clock()
-    ctx = trainer.loss_context(view, result)
-    terms = list(trainer.loss_terms(ctx, result, camera, t).values())
-    loss = sum(terms)
-    clock()
-    loss.backward()
-    clock()
-    cam = trainer.scene.cameras[view.camera]
-    trainer.strategy.accumulate(model.gaussian_nodes(), result.slices, result.absgrad2d, result.radii,
-                                cam.width, cam.height)
-    clock()
-    trainer.optimizers.step(trainer.step)
-    trainer.optimizers.zero_grad()
-    clock()
-    if not torch.isfinite(loss.detach()):
-        raise ConfigError("the benchmark step produced a non-finite loss")
+    trainer.recon.use_fused_training = fused
+    marks = [(time.perf_counter(), time.process_time())]
+    trainer.train_step(view, on_stage=lambda _name: marks.append((time.perf_counter(), time.process_time())))
     wall = {k: b[0] - a[0] for k, a, b in zip(STAGES, marks, marks[1:])}
     cpu = {k: b[1] - a[1] for k, a, b in zip(STAGES, marks, marks[1:])}
     return wall, cpu
@@ -173,20 +141,20 @@ def run(args: StepBenchArgs, plugins) -> dict:
         raise ConfigError(f"--steps must be >= 1 and --warmup >= 0, got {args.steps} / {args.warmup}")
     trainer = build_trainer(args, plugins)
     model = trainer.model
-    has_fused = hasattr(model.rasterizer, "rasterize_gaussians_train")
+    has_fused = "fused_training" in model.capabilities
     paths = args.paths or (("fused", "unfused") if has_fused else ("unfused",))
     bad = [p for p in paths if p not in ("fused", "unfused")]
     if bad:
         raise ConfigError(f"--paths {bad}: expected fused and/or unfused")
     if "fused" in paths and not has_fused:
-        raise ConfigError(f"--paths fused: rasterizer {type(model.rasterizer).__name__} has no fused training path "
-                          "(rasterize_gaussians_train); use --method.rasterizer cpu")
+        raise ConfigError(f"--paths fused: rasterizer {trainer.recon.rasterizer_name!r} does not declare the "
+                          "fused_training capability (rasterize_gaussians_train); use --method.rasterizer cpu")
     if args.checkpoint is not None:
         load_run_state(trainer, args.checkpoint)
     if args.gaussians:
         resize_background(trainer, args.gaussians, args.seed)
     at_step = args.at_step if args.at_step is not None else trainer.step  # 0, or the checkpoint's
-    trainer.step = trainer.recon.step = at_step
+    trainer.recon.step = at_step
     # SH bands as training at ``at_step`` stores them (omnire/shbands.py); a checkpoint of a
     # later degree loses its higher bands here, which that step would not have yet
     trainer.fit_sh_bands(discard_unused=True)
@@ -194,6 +162,10 @@ def run(args: StepBenchArgs, plugins) -> dict:
     views = [trainer.train_views[int(torch.randint(len(trainer.train_views), (1,), generator=g))]
              for _ in range(args.warmup + args.steps)]
     trainer.observations.preload(views, sky=trainer.use_sky_masks)
+    # what the benchmark starts from (the steps' densification may change it)
+    start = {"sh_degree": trainer.recon.sh_degree(at_step), "gaussians": model.num_gaussians(),
+             "gaussians_by_node": {n: m.num_gaussians for n, m in model.gaussian_nodes().items()},
+             "sh_columns_by_node": sh_columns(model.gaussian_nodes())}
     samples = {p: {s: [] for s in (*STAGES, "total")} for p in paths}
     cpu_total = {p: [] for p in paths}
     for i, view in enumerate(views):
@@ -205,15 +177,13 @@ def run(args: StepBenchArgs, plugins) -> dict:
                     samples[p][k].append(v)
                 samples[p]["total"].append(sum(wall.values()))
                 cpu_total[p].append(sum(cpu.values()))
-    model.use_fused_training = True
+    trainer.recon.use_fused_training = True
     return {
         "machine": machine_info(args.threads),
         "method": args.method, "dataparser": args.dataparser, "data": str(args.data),
-        "rasterizer": type(model.rasterizer).__name__, "threads": args.threads, "at_step": at_step,
-        "checkpoint": None if args.checkpoint is None else str(args.checkpoint),
-        "sh_degree": trainer.recon.sh_degree(at_step), "gaussians": model.num_gaussians(),
-        "gaussians_by_node": {n: m.num_gaussians for n, m in model.gaussian_nodes().items()},
-        "sh_columns_by_node": sh_columns(model.gaussian_nodes()),
+        "rasterizer": trainer.recon.rasterizer_name, "threads": args.threads, "at_step": at_step,
+        "steps_taken_to": trainer.step, "gaussians_after": model.num_gaussians(),
+        "checkpoint": None if args.checkpoint is None else str(args.checkpoint), **start,
         "warmup": args.warmup, "steps": args.steps,
         "paths": {p: {**{k: summarize(v) for k, v in samples[p].items()}, "total_cpu": summarize(cpu_total[p])}
                   for p in paths},

@@ -352,13 +352,16 @@ class SceneData:
         seconds = float(np.interp(frame, np.arange(self.num_frames), self.frame_timestamps))
         return SceneTime(float(frame), seconds)
 
-    def time_at(self, seconds: float) -> SceneTime:
-        """The moment at ``seconds`` on the log's clock (fractional frame between the
-        enclosing recorded frames; the first/last frame outside the log's span)."""
+    def time_since_start(self, seconds: float) -> SceneTime:
+        """The moment ``seconds`` after the first frame (clamped to the log): the fractional
+        frame between the enclosing recorded frames, its seconds as :meth:`time_of_frame`
+        gives them (a recorded frame's time gives that frame exactly)."""
         from omnire.interpolation import bracket
 
-        i0, i1, w = bracket(self.frame_timestamps, seconds)
-        return SceneTime(float(i0[0] + w[0] * (i1[0] - i0[0])), float(seconds))
+        since = np.asarray(self.frame_timestamps, dtype=np.float64)
+        since = since - since[0]
+        i0, i1, w = bracket(since, min(max(seconds, 0.0), float(since[-1])))
+        return self.time_of_frame(float(i0[0] + w[0] * (i1[0] - i0[0])))
 
     def camera(self, view: View, device="cpu"):
         """The :class:`omnire.camera.Camera` of ``view``."""

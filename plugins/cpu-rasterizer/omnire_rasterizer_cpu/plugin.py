@@ -4,21 +4,19 @@ from omnire.api import RasterizerSpec, hookimpl
 from omnire_rasterizer_cpu import available
 
 
-def _factory(**kwargs):
-    from omnire_rasterizer_cpu.rasterizer import CpuRasterizer
-
-    return CpuRasterizer(**kwargs)
-
-
 @hookimpl
 def omnire_register_rasterizers(registry) -> None:
+    # the class itself (importing it builds nothing) so its declared capabilities are checked here
+    from omnire_rasterizer_cpu.rasterizer import CpuRasterizer
+
     registry.register(
         RasterizerSpec(
             name="cpu",
             description="native C++/OpenMP AVX2 tile rasterizer with hand-written backward (CPU); "
             "kwargs: num_threads",
-            factory=_factory,
+            factory=CpuRasterizer,
             available=available,
             priority=50,
+            capabilities=frozenset({"inference", "fused_training", "ssim"}),
         )
     )

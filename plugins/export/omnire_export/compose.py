@@ -17,7 +17,7 @@ from typing import Iterator, Optional
 import numpy as np
 import torch
 
-from omnire.api import ActorNode, ActorState, EnvironmentNode, Gaussians, SceneTime, rotmat_to_quat
+from omnire.api import ActorNode, ActorState, Gaussians, SceneTime, rotmat_to_quat
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,17 +151,15 @@ def actor_parts(name: str, node: ActorNode, t: SceneTime, state: ActorState, max
             start += c
 
 
-def scene_parts(model, t: SceneTime, max_rows: int = 1 << 16, hidden: frozenset[str] = frozenset()) -> Iterator[Part]:
-    """Every Gaussian node of ``model`` (a :class:`~omnire.model.SceneModel`) present at
-    ``t``, in the order the runtime concatenates them: non-actor nodes as one world-frame
-    part each, actor nodes as one part per actor. Environment nodes hold no Gaussians and
-    are skipped."""
-    for name, node in model.nodes.items():
-        if name in hidden or isinstance(node, EnvironmentNode):
-            continue
-        if isinstance(node, ActorNode):
-            yield from actor_parts(name, node, t, node.state_at(t), max_rows)
+def scene_parts(recon, t: SceneTime, max_rows: int = 1 << 16, hidden: frozenset[str] = frozenset()) -> Iterator[Part]:
+    """Every Gaussian node of ``recon`` (a :class:`~omnire.api.Reconstruction`) present at
+    ``t``, in the order the runtime draws them (``Reconstruction.drawn``): a node without
+    actors as one world-frame part, actor nodes as one part per actor. Environment nodes
+    hold no Gaussians and are not drawn."""
+    for drawn in recon.drawn(t, hidden=hidden):
+        if drawn.is_actor:
+            yield from actor_parts(drawn.node_name, drawn.node, drawn.moment, drawn.state, max_rows)
         else:
-            out = node.gaussians_at(t, None, None)
+            out = drawn.output()
             if out is not None and len(out.gaussians):
-                yield Part(name, out.gaussians)
+                yield Part(drawn.node_name, out.gaussians)

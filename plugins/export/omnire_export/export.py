@@ -31,7 +31,7 @@ from typing import Callable, Iterable, Optional
 
 import torch
 
-from omnire.api import ActorNode, EnvironmentNode, SceneTime, atomic_write_text, write_png
+from omnire.api import ActorNode, SceneTime, atomic_write_text, write_png
 from omnire_export.compose import Part, Pose, local_state, scene_parts
 from omnire_export.ply import PlyStreamWriter, pack_rows
 
@@ -75,20 +75,17 @@ def write_local(path: Path, part: Part, sh_degree: int, chunk_rows: int = DEFAUL
         return out.count
 
 
-def environment_maps(model) -> dict[str, torch.Tensor]:
+def environment_maps(recon) -> dict[str, torch.Tensor]:
     """(H, W, 3) equirectangular maps of the environment nodes that offer one (by node name)."""
-    maps = {}
-    for name, node in model.nodes.items():
-        if isinstance(node, EnvironmentNode) and hasattr(node, "environment_map"):
-            maps[name] = node.environment_map()
-    return maps
+    return {name: node.environment_map() for name, node in recon.environment_nodes().items()
+            if hasattr(node, "environment_map")}
 
 
-def write_environment(model, folder: Path, stem: Optional[str]) -> list[Path]:
+def write_environment(recon, folder: Path, stem: Optional[str]) -> list[Path]:
     """Each environment map as ``<folder>/<stem>.<node>.png`` (``<node>.png`` without a stem),
     16-bit (the map is a learned texture in [0, 1]; 8 bits would band smooth skies)."""
     written = []
-    for name, env in environment_maps(model).items():
+    for name, env in environment_maps(recon).items():
         path = folder / (f"{stem}.{name}.png" if stem else f"{name}.png")
         write_png(path, (env.detach().cpu().clamp(0, 1) * 65535.0 + 0.5).floor(), bits=16)
         written.append(path)
@@ -111,11 +108,10 @@ def frame_label(frame: float, num_frames: int) -> str:
 
 
 def header_comments(recon, t: SceneTime) -> tuple[str, ...]:
-    info = getattr(recon, "run_info", None)
-    run = getattr(recon, "run_dir", None)
+    info, run = recon.run_info, recon.run_dir
     out = [f"omnire export: frame {t.frame} ({t.seconds:.6f} s), step {recon.step}, sh degree {recon.sh_degree()}"]
     if info is not None:
-        out.append(f"method {info.method}, dataparser {info.dataparser}, run {getattr(run, 'path', run)}")
+        out.append(f"method {info.method}, dataparser {info.dataparser}, run {run.path if run is not None else None}")
         attribution = info.extra.get("attribution")
         if attribution:
             out.append(" ".join(str(attribution).split()))
@@ -127,7 +123,7 @@ def export_scene(recon, t: SceneTime, path: Path, chunk_rows: int = DEFAULT_CHUN
     """The whole scene at ``t`` (background, actors at their poses, pedestrians skinned) as
     one PLY at ``path``; returns the Gaussian count. Streams: at most ``chunk_rows`` rows
     are converted at a time."""
-    return write_parts(path, scene_parts(recon.model, t, chunk_rows), recon.sh_degree(), chunk_rows,
+    return write_parts(path, scene_parts(recon, t, chunk_rows), recon.sh_degree(), chunk_rows,
                        header_comments(recon, t))
 
 
@@ -168,14 +164,14 @@ def export_per_node(recon, t: SceneTime, folder: Path, chunk_rows: int = DEFAULT
     """Every node and actor at ``t`` in its own PLY under ``folder`` plus ``poses.json`` (see
     the module docstring); the sky's map as ``<node>.png`` unless ``write_sky`` is False."""
     folder = Path(folder)
-    scene, model, degree = recon.scene, recon.model, recon.sh_degree()
+    scene, nodes, degree = recon.scene, recon.nodes, recon.sh_degree()
     tracks = {tr.track_id: tr for tr in scene.tracks}
     comments = header_comments(recon, t)
     files, entries, total = [], [], 0
     pose_tables: dict[str, dict[int, list[dict]]] = {}
     used_names: set[str] = set()
-    for part in scene_parts(model, t, chunk_rows):
-        node = model.nodes[part.node]
+    for part in scene_parts(recon, t, chunk_rows):
+        node = nodes[part.node]
         if part.pose is None:
             rel = f"{safe_name(part.node)}.ply"
             entry = {"file": rel, "node": part.node}
@@ -200,7 +196,7 @@ def export_per_node(recon, t: SceneTime, folder: Path, chunk_rows: int = DEFAULT
         total += count
         files.append(folder / rel)
         entries.append(entry)
-    envs = write_environment(model, folder, None) if write_sky else []
+    envs = write_environment(recon, folder, None) if write_sky else []
     manifest = {
         "format": POSES_FORMAT, "frame": t.frame, "seconds": t.seconds, "step": recon.step, "sh_degree": degree,
         "scene": scene.name, "num_frames": scene.num_frames,
@@ -265,7 +261,7 @@ def export(recon, frames: list[float], output: Path, per_node: bool, sequence: b
             if progress:
                 progress(frame)
         if sequence:
-            files += write_environment(recon.model, output, None)
+            files += write_environment(recon, output, None)
         return Written(files, total)
     stem = output.name[:-4] if output.name.lower().endswith(".ply") else output.name
     for frame in frames:
@@ -274,5 +270,5 @@ def export(recon, frames: list[float], output: Path, per_node: bool, sequence: b
         files.append(path)
         if progress:
             progress(frame)
-    files += write_environment(recon.model, output.parent, stem)
+    files += write_environment(recon, output.parent, stem)
     return Written(files, total)

@@ -19,5 +19,6 @@ def omnire_register_rasterizers(registry) -> None:
             factory=_factory,
             available=available,
             priority=100,
+            capabilities=frozenset(),  # rasterize only: the runtime concatenates and renders through it
         )
     )

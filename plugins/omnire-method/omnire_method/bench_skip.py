@@ -91,7 +91,7 @@ def main(argv: list[str], plugins) -> int:
     no_humans.human_poses = {}
     trainers = [_trainer(plugins, method, args.dataparser, no_humans) for method in (args.baseline, "omnire")]
     times = _time_steps(trainers, [tr.train_views for tr in trainers], args.warmup, args.steps)
-    rows = [{"method": tr.config.method_name, "nodes": list(tr.recon.model.nodes), "ms_per_step": ms,
+    rows = [{"method": tr.config.method_name, "nodes": list(tr.recon.nodes), "ms_per_step": ms,
              "gaussians": tr.recon.num_gaussians()} for tr, ms in zip(trainers, times)]
     del trainers
     out["no_humans"] = rows

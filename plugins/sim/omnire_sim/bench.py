@@ -89,12 +89,12 @@ def measure(run: Path, plugins: Plugins, sizes: list[tuple[int, int]], views: in
     torch.set_num_threads(threads)
     recon = Reconstruction.from_run(run, plugins)
     chosen = pick_views(recon.scene, views)
-    out = {"run": str(run), "method": recon.run_info.method, "rasterizer": recon.model.rasterizer.name,
+    out = {"run": str(run), "method": recon.run_info.method, "rasterizer": recon.rasterizer_name,
            "gaussians": recon.num_gaussians(), "step": recon.step, "views": len(chosen), "sizes": {}}
     key = run.resolve().name
     out["path"] = "training" if training_path else "inference"
     if training_path:  # the plain torch composition (assemble + composite), not the fused native one
-        recon.model.use_fused_training = False
+        recon.use_fused_training = False
     with torch.set_grad_enabled(training_path):
         for w, h in sizes:
             cams = [(v, recon.camera(v).resized(w, h)) for v in chosen]

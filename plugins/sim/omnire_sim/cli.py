@@ -115,7 +115,7 @@ def _summary(sim: Simulation) -> list[dict]:
         kind = "removed" if a.removed else ("inserted" if a.inserted else "edited")
         item = {"id": a.key, "kind": kind, "node": a.node_name}
         if a.inserted:
-            item["run"] = str(a.owner.run_dir.path) if hasattr(a.owner, "run_dir") else None
+            item["run"] = str(a.owner.run_dir.path) if a.owner.run_dir is not None else None
             item["track"] = a.node.track_ids[a.instance]
         if a.motion:
             item["motion"] = a.motion
@@ -197,12 +197,11 @@ def run_sim(args: SimArgs, plugins, argv: Optional[list[str]] = None) -> Path:
                     entry["cameras"][name] = cam_entry
                 frames_meta.append(entry)
                 progress.update(task, advance=1)
-        info = getattr(recon, "run_info", None)
         manifest = {
             "command": ["omnire", "sim", *(argv or [])],
             "run": str(args.run_dir.resolve()),
             "checkpoint_step": recon.step,
-            "method": getattr(info, "method", None),
+            "method": recon.run_info.method if recon.run_info is not None else None,
             "scene": recon.scene.name,
             "attribution": recon.scene.attribution,
             "scenario": str(args.scenario.resolve()),

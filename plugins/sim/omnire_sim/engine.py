@@ -9,9 +9,10 @@ recorded, and each edited actor is drawn by its node's ``gaussians_for`` with it
 (box rotation R, centre t and, for body-model nodes, the 24 joint rotations) and its own
 moment (the actor's clock). Actors inserted from another run are drawn the same way by
 *that run's* node (its Gaussians, appearance and deformation). Nodes without actors
-(background, sky) render as recorded. The parts are concatenated and rasterized by the
-scene's own model (``SceneModel.assemble`` + ``composite``), so an empty scenario renders
-exactly what ``Reconstruction.render`` does.
+(background, sky) render as recorded. A :class:`Simulation` is the runtime's
+:class:`~omnire.api.ActorEdits`: ``Reconstruction.drawn`` asks it which actors it draws
+itself and ``Reconstruction.render`` renders the result, so an empty scenario renders
+exactly what ``Reconstruction.render`` does without edits.
 
 Shapes: box poses R (3, 3) / t (3,) per actor as torch float32 on the model's device; body
 rotations (24, 3, 3), SMPL joint order, root = orientation relative to the box.
@@ -40,7 +41,7 @@ from omnire.api import (
     rot_z,
 )
 from omnire_body.motion import gait_phase, gait_pose
-from omnire_body.rest import BODY_TO_BOX as CANON_TO_BOX
+from omnire_body.rest import BODY_TO_BOX
 from omnire_sim.edits import ActorEdit, Clock, Insertion, Motion, Placement, Scenario, Trajectory, Where
 
 _EPS_T = 1e-9
@@ -51,22 +52,13 @@ def has_body(node) -> bool:
     return hasattr(node, "rotations_at") and hasattr(node, "joints")
 
 
-def find_actor(recon: Reconstruction, track: str) -> Optional[tuple[str, ActorNode, int]]:
-    """(node name, node, instance index) of track id ``track`` in ``recon``, or None."""
-    for name, node in recon.model.nodes.items():
-        if isinstance(node, ActorNode) and track in node.track_ids:
-            return name, node, node.track_ids.index(track)
-    return None
-
-
 def describe_missing(recon: Reconstruction, track: str, run: str = "this run") -> str:
     """Why ``track`` is not an editable actor of ``recon`` (for error messages)."""
     in_scene = any(t.track_id == track for t in recon.scene.tracks)
     if in_scene:
         return (f"track {track!r} is in the scene but {run} draws it as part of the background (no actor node took "
                 "it: too small, never seen by a camera, or its node type is disabled); it cannot be edited")
-    actors = [(t, name) for name, node in recon.model.nodes.items() if isinstance(node, ActorNode)
-              for t in node.track_ids]
+    actors = [(t, name) for name, node in recon.actor_nodes().items() for t in node.track_ids]
     sample = ", ".join(f"{t} ({n})" for t, n in actors[:6]) + (" ..." if len(actors) > 6 else "")
     return f"no track {track!r} in {run} ({len(actors)} actors: {sample or 'none'})"
 
@@ -74,15 +66,6 @@ def describe_missing(recon: Reconstruction, track: str, run: str = "this run") -
 def seconds_of(recon: Reconstruction) -> np.ndarray:
     ts = np.asarray(recon.scene.frame_timestamps, dtype=np.float64)
     return ts - ts[0]
-
-
-def moment(recon: Reconstruction, tau: float) -> SceneTime:
-    """The SceneTime of ``tau`` seconds since the first frame of ``recon``'s log (clamped)."""
-    sec = seconds_of(recon)
-    tau = min(max(tau, 0.0), float(sec[-1]))
-    i0, i1, w = bracket(sec, tau)
-    frame = float(i0[0] + w[0] * (i1[0] - i0[0]))
-    return recon.scene.time_of_frame(frame)
 
 
 def path_headings(xy: np.ndarray, fallback: float) -> np.ndarray:
@@ -136,7 +119,7 @@ class _PoseSource:
             dur = float(seconds_of(self.recon)[-1])
             if tau < -_EPS_T or tau > dur + _EPS_T:
                 return None
-            st = self.node.state_at(exact if exact is not None else moment(self.recon, tau))
+            st = self.node.state_at(exact if exact is not None else self.recon.time_since_start(tau))
             hit = torch.nonzero(st.ids == self.instance).flatten()
             if len(hit) == 0:
                 return None
@@ -263,8 +246,9 @@ class SimActor:
 
     @torch.no_grad()
     def state(self, t: float, scene_time: Optional[SceneTime] = None) -> Optional[tuple[ActorState, SceneTime]]:
-        """The actor's state at scene time ``t`` and the moment its node draws it at, or
-        None when it is absent then."""
+        """The actor's state at scene time ``t`` (seconds since the first frame; the moment
+        ``scene_time``) and the moment its node draws it at, or None when it is absent then
+        (:class:`omnire.api.EditedActor`)."""
         tau = self.tau(t)
         exact = scene_time if (tau == t and self.pose.recorded and self.pose.recon is not None
                                and scene_time is not None and self.pose.recon is self.owner) else None
@@ -292,14 +276,14 @@ class SimActor:
         """The moment of the owning run the node draws at (time-dependent appearance)."""
         if self.inserted:
             base = self.source_time if self.source_time is not None else 0.0
-            return moment(self.owner, base + tau - self.origin)
-        return moment(self.owner, tau)
+            return self.owner.time_since_start(base + tau - self.origin)
+        return self.owner.time_since_start(tau)
 
     def body(self, tau: float, t: float, recorded: Optional[torch.Tensor], own: SceneTime) -> torch.Tensor:
         """(24, 3, 3) joint rotations (root relative to the box) at actor time ``tau``
         (scene time ``t``); ``recorded``: the rotations read with the box pose, if any."""
         dev = self.owner.device
-        canon = torch.as_tensor(CANON_TO_BOX, dtype=torch.float32, device=dev)
+        canon = torch.as_tensor(BODY_TO_BOX, dtype=torch.float32, device=dev)
         if self.motion == "recorded":
             if recorded is not None and self.pose.recorded and self.pose.node is self.node:
                 return recorded  # its own recorded track: exactly the recorded body
@@ -327,7 +311,9 @@ class SimActor:
 class Simulation:
     """A reconstructed scene with a scenario's edits applied; renders any camera at any
     moment (:meth:`render`). ``assets``: runs already loaded for insertions, by resolved
-    path (others are loaded with ``plugins``).
+    path (others are loaded with ``plugins``). It is the runtime's
+    :class:`~omnire.api.ActorEdits` (:meth:`edited`, :meth:`inserted`): what it draws is
+    ``recon.drawn(time, sim)``.
 
     Example::
 
@@ -430,7 +416,7 @@ class Simulation:
 
     def _resolve_edit(self, edit: ActorEdit) -> SimActor:
         w = edit.where
-        found = find_actor(self.recon, edit.track)
+        found = self.recon.find_actor(edit.track)
         if found is None:
             raise w.error("track", describe_missing(self.recon, edit.track))
         name, node, instance = found
@@ -473,7 +459,7 @@ class Simulation:
     def _resolve_insert(self, ins: Insertion) -> list[SimActor]:
         w = ins.where
         asset = self._asset(ins)
-        found = find_actor(asset, ins.track)
+        found = asset.find_actor(ins.track)
         if found is None:
             raise w.error("track", describe_missing(asset, ins.track, f"the asset run {ins.run}"))
         name, node, instance = found
@@ -491,7 +477,7 @@ class Simulation:
         actor = SimActor(ins.id, w, name, node, asset, instance, clock=ins.clock, placement=ins.placement,
                          source_time=source_time, inserted=True)
         if ins.replace is not None:
-            target = find_actor(self.recon, ins.replace)
+            target = self.recon.find_actor(ins.replace)
             if target is None:
                 raise w.error("replace", describe_missing(self.recon, ins.replace))
             t_name, t_node, t_inst = target
@@ -523,10 +509,20 @@ class Simulation:
                 return np.asarray(t.size, dtype=np.float64)
         return np.zeros(3)
 
+    # ------------------------------------------------------------------ the runtime's ActorEdits
+    def edited(self, node_name: str) -> dict[int, SimActor]:
+        """The scene actors of node ``node_name`` this simulation draws itself (edited or
+        removed), by instance."""
+        return self._by_node.get(node_name, {})
+
+    def inserted(self) -> list[SimActor]:
+        """The actors inserted from other runs, in scenario order."""
+        return [a for a in self.actors if a.inserted]
+
     # ------------------------------------------------------------------ rendering
     def time(self, seconds: float) -> SceneTime:
         """The scene moment ``seconds`` after the log's first frame."""
-        return moment(self.recon, seconds)
+        return self.recon.time_since_start(seconds)
 
     def actor(self, key: str) -> SimActor:
         for a in self.actors:
@@ -536,44 +532,10 @@ class Simulation:
 
     def parts(self, time: SceneTime, camera: Optional[Camera] = None, only: Optional[set[str]] = None,
               hidden: frozenset[str] = frozenset()) -> list:
-        """(name, NodeOutput or None) of everything drawn at scene moment ``time``.
-        ``only``: draw only these actors (track ids / insert ids), no background or sky."""
-        t = time.seconds - float(self.recon.scene.frame_timestamps[0])
-        camera = self.recon.model.node_camera(camera, time)  # what the nodes may skip as unseen
-        out = []
-        for name, node in self.recon.model.gaussian_nodes().items():
-            if name in hidden:
-                continue
-            if not isinstance(node, ActorNode):
-                if only is None:
-                    out.append((name, node.gaussians_at(time, camera)))
-                continue
-            edited = self._by_node.get(name, {})
-            if not edited and only is None:
-                out.append((name, node.gaussians_at(time, camera)))
-                continue
-            state = node.state_at(time)
-            keep = [k for k, i in enumerate(state.ids.tolist())
-                    if i not in edited and (only is None or node.track_ids[i] in only)]
-            if keep:
-                if len(keep) == len(state.ids):
-                    rest = state
-                else:
-                    rest = state.select(torch.tensor(keep, dtype=torch.long, device=state.ids.device))
-                out.append((name, node.gaussians_for(rest, time, camera)))
-            for actor in edited.values():
-                if actor.removed or (only is not None and actor.key not in only):
-                    continue
-                got = actor.state(t, time)
-                if got is not None:
-                    out.append((f"{name}:{actor.key}", node.gaussians_for(got[0], got[1], camera)))
-        for actor in self.actors:
-            if not actor.inserted or actor.removed or (only is not None and actor.key not in only):
-                continue
-            got = actor.state(t, time)
-            if got is not None:
-                out.append((f"insert:{actor.key}", actor.node.gaussians_for(got[0], got[1], camera)))
-        return out
+        """(name, NodeOutput or None) of everything drawn at scene moment ``time``
+        (``Reconstruction.drawn`` with these edits). ``only``: draw only these actors (track
+        ids / insert ids), no background or sky."""
+        return self.recon.node_outputs(self.recon.drawn(time, self, only, hidden), camera, time)
 
     @torch.no_grad()
     def render(self, camera: Camera, time: SceneTime, only: Optional[set[str]] = None,
@@ -581,9 +543,5 @@ class Simulation:
         """Render the edited scene at ``time`` through ``camera`` -> RenderResult (rgb, depth,
         alpha (H, W, C)). ``only``: just these actors (track / insert ids), without the
         background and the sky; ``hidden``: node names not drawn."""
-        model = self.recon.model
-        parts = self.parts(time, camera, only, hidden)
-        if only is not None:
-            hidden = frozenset(hidden) | frozenset(model.environment_nodes())
-        degree = self.recon.sh_degree() if not self.assets else self.sh_degree
-        return model.render_parts(parts, camera, time, degree, hidden)
+        degree = None if not self.assets else self.sh_degree
+        return self.recon.render(camera, time, hidden=hidden, sh_degree=degree, edits=self, only=only)

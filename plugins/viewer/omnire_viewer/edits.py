@@ -5,8 +5,9 @@ a turn) in an :class:`EditModel`. What is drawn never comes from there directly:
 :meth:`EditModel.scenario` writes those edits as an ``omnire_sim`` :class:`Scenario` (hide =
 ``remove = true``; move = ``Placement(offset_world=..., yaw=...)``), on top of the scenario
 file the viewer was opened with, if any, and an :class:`omnire_sim.Simulation` resolves it.
-The browser objects (:func:`drawn_actors`) and the server render (``Simulation.render``) both
-read that one simulation, so the viewer has no edit semantics of its own.
+The browser objects (:func:`drawn_actors`, the runtime's ``Reconstruction.drawn``) and the
+server render (``Simulation.render``) both read that one simulation, so the viewer has no edit
+semantics of its own.
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from typing import Optional
 
 import torch
 
-from omnire.api import ActorNode, ActorState, SceneTime
+from omnire.api import Drawn, SceneTime
 from omnire_sim import ActorEdit as SimActorEdit
 from omnire_sim import Placement, Scenario, Simulation
 from omnire_sim.edits import Where
@@ -115,48 +116,11 @@ class EditModel:
         return dataclasses.replace(base, actors=tuple(actors.values()), inserts=tuple(inserts.values())).check()
 
 
-@dataclasses.dataclass
-class DrawnActors:
-    """Actors one node draws together at a moment: ``state`` (P actors) at ``moment``;
-    ``keys`` (P,) their track / insert ids; ``owner`` the run whose node it is (another run
-    for inserted actors, whose ``node_name`` is then None)."""
-
-    node_name: Optional[str]
-    node: ActorNode
-    owner: object
-    state: ActorState
-    moment: SceneTime
-    keys: list[str]
-
-
 @torch.no_grad()
-def drawn_actors(sim: Simulation, time: SceneTime) -> Iterator[DrawnActors]:
-    """Every actor the simulation draws at scene moment ``time``, with the state and moment
-    its node draws it at: per actor node the unedited actors together (recorded state), each
-    edited actor alone (``SimActor.state``), then the inserted actors. The same split as
-    ``Simulation.parts``, kept per actor so the browser can place each one by its box."""
-    recon = sim.recon
-    t = time.seconds - float(recon.scene.frame_timestamps[0])
-    edited: dict[str, dict[int, object]] = {}
-    for actor in sim.actors:
-        if not actor.inserted:
-            edited.setdefault(actor.node_name, {})[actor.instance] = actor
-    for name, node in recon.model.nodes.items():
-        if not isinstance(node, ActorNode):
-            continue
-        mine = edited.get(name, {})
-        state = node.state_at(time)
-        keep = [k for k, i in enumerate(state.ids.tolist()) if i not in mine]
-        if keep:
-            sel = torch.tensor(keep, dtype=torch.long, device=state.ids.device)
-            rest = ActorState(state.ids[sel], state.R[sel], state.t[sel], None if state.body is None else state.body[sel])
-            yield DrawnActors(name, node, recon, rest, time, [node.track_ids[i] for i in rest.ids.tolist()])
-        for actor in mine.values():
-            got = None if actor.removed else actor.state(t, time)
-            if got is not None:
-                yield DrawnActors(name, node, recon, got[0], got[1], [actor.key])
-    for actor in sim.actors:
-        if actor.inserted and not actor.removed:
-            got = actor.state(t, time)
-            if got is not None:
-                yield DrawnActors(None, actor.node, actor.owner, got[0], got[1], [actor.key])
+def drawn_actors(sim: Simulation, time: SceneTime) -> Iterator[Drawn]:
+    """Every group of actors the simulation draws at scene moment ``time`` (the runtime's
+    ``Reconstruction.drawn`` with its edits, actor groups holding at least one actor), so the
+    browser can place each actor by its box."""
+    for group in sim.recon.drawn(time, sim):
+        if group.is_actor and len(group.state.ids):
+            yield group

@@ -9,22 +9,7 @@ Address: ``--trainer.observer-options host=... port=...`` (default 127.0.0.1:808
 """
 from __future__ import annotations
 
-import copy
-
-import torch
-
-from omnire.api import Reconstruction, UserError
-
-
-def snapshot(recon: Reconstruction) -> Reconstruction:
-    """A copy of ``recon`` whose model tensors are independent of the original (scene data,
-    method and rasterizer shared)."""
-    model = recon.model
-    memo = {id(model.scene): model.scene, id(model.rasterizer): model.rasterizer, id(model.method): model.method}
-    with torch.no_grad():
-        copied = copy.deepcopy(model, memo)
-    copied.requires_grad_(False)
-    return Reconstruction(recon.scene, copied, recon.method, step=recon.step)
+from omnire.api import UserError
 
 
 class ViewerObserver:
@@ -40,14 +25,14 @@ class ViewerObserver:
         except ValueError:
             raise UserError(f"--trainer.observer-options port={options['port']!r}: expected a port number") from None
         self.trainer = trainer
-        scene = ViewerScene(snapshot(trainer.recon))
+        scene = ViewerScene(trainer.recon.snapshot())
         name = trainer.run_dir.name if trainer.run_dir is not None else "training"
         self.viewer = Viewer(scene, host, port, title=f"training {trainer.config.method_name} - {name}", verbose=False)
         print(f"viewer: {self.viewer.url} (refreshed every {trainer.config.trainer.observe_every} steps)", flush=True)
 
     def on_step(self, step: int, stats: dict) -> None:
         note = f"loss {stats.get('loss', float('nan')):.4f}, PSNR {stats.get('psnr', float('nan')):.2f} dB"
-        self.viewer.set_recon(snapshot(self.trainer.recon), note)
+        self.viewer.set_recon(self.trainer.recon.snapshot(), note)
 
     def close(self) -> None:
         self.viewer.close()

@@ -23,13 +23,14 @@ from omnire.api import (
     ActorNode,
     ActorState,
     Camera,
+    Drawn,
     EnvironmentNode,
     Gaussians,
     SceneTime,
     rotmat_to_quat,
 )
 from omnire_sim import Scenario, Simulation
-from omnire_viewer.edits import ActorEdit, DrawnActors, EditModel, drawn_actors
+from omnire_viewer.edits import ActorEdit, EditModel, drawn_actors
 from omnire_viewer.splats import SplatArrays, sky_splats, splat_arrays
 
 KEYS = ("means", "quats", "scales", "opacities", "sh0", "shN")
@@ -139,6 +140,8 @@ class ViewerScene:
         with self.lock:
             self.recon = recon
             self.scene = recon.scene
+            # app.py still reads model.num_gaussians / device / rasterizer.name through this (its
+            # owner moves it to recon.num_gaussians(), recon.device, recon.rasterizer_name)
             self.model = recon.model
             self._cache.clear()
             self._sim = None
@@ -147,7 +150,7 @@ class ViewerScene:
             self.actors: dict[str, ActorInfo] = {}
             self.node_kinds: dict[str, str] = {}
             removed = {a.key for a in base.actors if a.removed and not a.inserted}
-            for name, node in self.model.nodes.items():
+            for name, node in recon.nodes.items():
                 if isinstance(node, EnvironmentNode):
                     self.node_kinds[name] = "environment"
                 elif isinstance(node, ActorNode):
@@ -221,8 +224,8 @@ class ViewerScene:
         return splats, self._counter
 
     @staticmethod
-    def object_name(group: DrawnActors, key: str) -> str:
-        return f"/actors/{group.node_name}/{key}" if group.node_name is not None else f"/actors/insert/{key}"
+    def object_name(group: Drawn, key: str) -> str:
+        return f"/actors/insert/{key}" if group.inserted else f"/actors/{group.node_name}/{key}"
 
     @torch.no_grad()
     def objects_at(self, frame: float) -> dict[str, SceneObject]:
@@ -231,26 +234,25 @@ class ViewerScene:
         t = self.time(frame)
         out: dict[str, SceneObject] = {}
         with self.lock:
-            sim = self.simulation()
-            for name, node in self.model.nodes.items():
-                if self.node_kinds[name] != "gaussians":
+            for group in self.recon.drawn(t, self.simulation()):
+                if not group.is_actor:
+                    res = group.output()
+                    if res is None or len(res.gaussians) == 0:
+                        continue
+                    key = f"/nodes/{group.node_name}"
+                    splats, version = self._splats_for(key, res.gaussians, None, True, self.recon.sh_degree())
+                    out[key] = SceneObject(key, group.node_name, None, splats, np.zeros(3), np.array([1.0, 0, 0, 0]),
+                                           version)
                     continue
-                res = node.gaussians_at(t, None, None)
-                if res is None or len(res.gaussians) == 0:
-                    continue
-                key = f"/nodes/{name}"
-                splats, version = self._splats_for(key, res.gaussians, None, True, self.recon.sh_degree())
-                out[key] = SceneObject(key, name, None, splats, np.zeros(3), np.array([1.0, 0, 0, 0]), version)
-            for group in drawn_actors(sim, t):
                 for tid, g, R, tr in self._actor_locals(group):
                     key = self.object_name(group, tid)
                     world = g.means @ R.T + tr
                     splats, version = self._splats_for(key, g, world, False, group.owner.sh_degree())
-                    out[key] = SceneObject(key, group.node_name, tid, splats, tr.double().cpu().numpy(),
-                                           rotmat_to_quat(R.double().cpu()).numpy(), version)
+                    out[key] = SceneObject(key, None if group.inserted else group.node_name, tid, splats,
+                                           tr.double().cpu().numpy(), rotmat_to_quat(R.double().cpu()).numpy(), version)
         return out
 
-    def _actor_locals(self, group: DrawnActors):
+    def _actor_locals(self, group: Drawn):
         """(key, box-frame Gaussians, R (3, 3), t (3,)) per actor of ``group``: its node draws
         them at the identity pose (posed bodies, deformations and moment kept)."""
         state, node = group.state, group.node
@@ -276,10 +278,10 @@ class ViewerScene:
         """The browser's sky shell (from the first environment node with a map), or None."""
         if self.sky_count <= 0:
             return None
-        for node in self.model.nodes.values():
-            if isinstance(node, EnvironmentNode) and hasattr(node, "environment_map"):
+        for node in self.recon.environment_nodes().values():
+            if hasattr(node, "environment_map"):
                 centres = np.stack([c.cam_to_world[:, :3, 3] for c in self.scene.cameras]).reshape(-1, 3)
-                radius = max(300.0, 4.0 * float(self.model.scene_radius))
+                radius = max(300.0, 4.0 * float(self.recon.scene_radius))
                 return sky_splats(node.environment_map(), centres.mean(0), radius, self.sky_count)
         return None
 
