@@ -104,7 +104,6 @@ def test_fitter_recovers_walk_from_lidar(template):
 
 def test_fitter_uses_keypoints_from_two_cameras(template):
     poses, go, bp, centres = true_walk(template, yaw=-0.3, seed=2)
-    world_vertices(template, go, bp, centres)
     J = np.stack([forward_kinematics(template.joints, template.parents, g, b)[0] for g, b in zip(go, bp)])
     J0 = template.joints[0]
     lo, hi = template.vertices[:, 1].min(), template.vertices[:, 1].max()
