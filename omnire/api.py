@@ -87,6 +87,30 @@ from omnire.runconfig import TrainConfig, TrainerConfig
 from omnire.runtime import Reconstruction
 from omnire.trainer import Trainer
 
+# Trusted input and output (issue 41): documents read with bounded nesting and line positions,
+# output directories that --overwrite may replace, writes that leave nothing half-written.
+from omnire.io.documents import TomlDocument, load_json, load_toml, parse_json, parse_toml, read_text
+from omnire.io.outputs import (
+    OutputError,
+    check_location,
+    check_output_dir,
+    staged_directory,
+    staged_files,
+    writing,
+)
+from omnire.limits import (
+    DEFAULT_FRAME_CAP,
+    MAX_FPS,
+    MAX_IMAGE_SIDE,
+    POSITION_MARGIN_M,
+    check_fps,
+    check_frame_count,
+    check_image_size,
+    check_offset,
+    check_positions,
+)
+from omnire.rundir import flatten_eval
+
 __all__ = [
     "CATEGORIES", "GAUSSIAN_KEYS", "MissingFileError", "ActorNode", "ActorState", "ActorPoses", "ActorTrack", "BackgroundConfig", "BoxActorConfig",
     "BoxActorNode", "Camera", "CameraSequence", "CommandSpec", "ConfigError", "Dataparser", "DataparserConfig",
@@ -104,4 +128,9 @@ __all__ = [
     "to_tensor", "track_displacement", "train_frame_bracket", "transform_instances", "usable_track", "user_cache_dir",
     "placed_output", "Placement",
     "visible_in_cameras", "voxel_downsample", "write_png",
+    # trusted input and output (issue 41)
+    "TomlDocument", "load_json", "load_toml", "parse_json", "parse_toml", "read_text",
+    "OutputError", "check_location", "check_output_dir", "staged_directory", "staged_files", "writing",
+    "flatten_eval", "DEFAULT_FRAME_CAP", "MAX_FPS", "MAX_IMAGE_SIDE", "POSITION_MARGIN_M", "check_fps",
+    "check_frame_count", "check_image_size", "check_offset", "check_positions",
 ]

@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from omnire_batch.spec import Job, Scene
-from omnire_batch.runs import run_results, run_state
+from omnire.rundir import RunDirectory
+from omnire_batch.runs import run_state
 
 Report = Callable[[str, dict], bool]
 """report(job key, progress info) -> whether the batch asks the job to stop."""
@@ -228,7 +229,7 @@ def _execute_locked(job: Job, result: dict, done, say, redo_changed: bool, stop_
         os.replace(job.run_dir, dest)
         state, step = "new", None
     if state == "finished":
-        return done(status="ok", exit_code=0, **run_results(job.run_dir))
+        return done(status="ok", exit_code=0, **RunDirectory(job.run_dir).results())
     if state == "partial":  # nothing to resume from; the trainer refuses an existing directory
         shutil.rmtree(job.run_dir)
     cmd = [sys.executable, "-m", "omnire.cli", *job.train_args()]
@@ -277,7 +278,7 @@ def _execute_locked(job: Job, result: dict, done, say, redo_changed: bool, stop_
         raise
     tail = log_tail(job.log_path, start)
     if rc == 0 and stop_reason is None:
-        res = run_results(job.run_dir)
+        res = RunDirectory(job.run_dir).results()
         if res is not None:
             return done(status="ok", exit_code=0, **res)
         return done(exit_code=0, error=f"omnire train exited 0 but {job.run_dir}/metrics.jsonl has no final "

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import zipfile
 from pathlib import Path
 from typing import Optional
 
@@ -27,6 +28,7 @@ import numpy as np
 import torch
 
 from omnire.api import (
+    MAX_FPS,
     ActorNode,
     ActorState,
     Camera,
@@ -199,7 +201,7 @@ def load_body_sequence(path: Path, motion: Motion, where: Where) -> _BodySequenc
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: np.asarray(data[k]) for k in data.files}
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise where.error("motion", f"{path}: cannot read the npz ({exc})") from None
     if "body_pose" in arrays:
         aa = arrays["body_pose"].astype(np.float64)
@@ -223,10 +225,14 @@ def load_body_sequence(path: Path, motion: Motion, where: Where) -> _BodySequenc
     fps = motion.fps
     for key in ("fps", "mocap_framerate"):
         if fps is None and key in arrays:
-            fps = float(arrays[key])
+            value = arrays[key]
+            if value.size != 1 or value.dtype.kind not in "iuf":
+                raise where.error("motion", f"{path}: '{key}' must be one number (frames per second), got a "
+                                            f"{value.dtype} array of shape {value.shape}")
+            fps = float(value.reshape(()))
     fps = 30.0 if fps is None else fps
-    if not fps > 0:
-        raise where.error("motion", f"{path}: frame rate {fps} must be > 0")
+    if not (math.isfinite(fps) and 0 < fps <= MAX_FPS):
+        raise where.error("motion", f"{path}: frame rate {fps} must be in (0, {MAX_FPS:g}]")
     return _BodySequence(axis_angle_to_rotmat(aa), fps, motion.loop)
 
 
