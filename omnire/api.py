@@ -102,9 +102,11 @@ from omnire.limits import (
     DEFAULT_FRAME_CAP,
     MAX_FPS,
     MAX_IMAGE_SIDE,
+    MAX_MOTION_FRAMES,
     POSITION_MARGIN_M,
     check_fps,
     check_frame_count,
+    check_npz_rows,
     check_image_size,
     check_offset,
     check_positions,
@@ -131,6 +133,6 @@ __all__ = [
     # trusted input and output (issue 41)
     "TomlDocument", "load_json", "load_toml", "parse_json", "parse_toml", "read_text",
     "OutputError", "check_location", "check_output_dir", "staged_directory", "staged_files", "writing",
-    "flatten_eval", "DEFAULT_FRAME_CAP", "MAX_FPS", "MAX_IMAGE_SIDE", "POSITION_MARGIN_M", "check_fps",
-    "check_frame_count", "check_image_size", "check_offset", "check_positions",
+    "flatten_eval", "DEFAULT_FRAME_CAP", "MAX_FPS", "MAX_IMAGE_SIDE", "MAX_MOTION_FRAMES", "POSITION_MARGIN_M",
+    "check_fps", "check_frame_count", "check_npz_rows", "check_image_size", "check_offset", "check_positions",
 ]

@@ -38,6 +38,7 @@ from omnire.limits import (
     check_fps,
     check_frame_count,
     check_image_size,
+    check_npz_rows,
     check_positions,
     file_size_cap,
 )
@@ -250,15 +251,6 @@ def interpolated_path(scene: SceneData, fps: float, cameras: Optional[Sequence[s
     return path_at_times(scene, seconds, cameras, fps)
 
 
-def _npz_rows(data, key: str) -> int:
-    """Length of the first axis of array ``key`` of an open npz, read from its header only."""
-    with data.zip.open(f"{key}.npy") as f:
-        version = np.lib.format.read_magic(f)
-        shape, _, _ = (np.lib.format.read_array_header_1_0(f) if version == (1, 0)
-                       else np.lib.format.read_array_header_2_0(f))
-    return int(shape[0]) if shape else 1
-
-
 def _load_pose_file(path: Path, frame_cap: int) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise MissingFileError(f"{path}: camera path file not found (expected .npz or .json with 'seconds' (T,) "
@@ -274,9 +266,7 @@ def _load_pose_file(path: Path, frame_cap: int) -> dict[str, np.ndarray]:
                 raise ValueError("top level must be an object")
             return {k: np.asarray(v, dtype=np.float64) for k, v in raw.items()}
         with np.load(path, allow_pickle=False) as data:
-            for k in data.files:  # shapes from the headers: a compressed bomb is refused unread
-                rows = _npz_rows(data, k)
-                check_frame_count(rows, frame_cap, f"{path}: '{k}'")
+            check_npz_rows(data, frame_cap, str(path))
             return {k: np.asarray(data[k], dtype=np.float64) for k in data.files}
     except (ValueError, OSError, TypeError, EOFError, zipfile.BadZipFile) as exc:
         raise ConfigError(f"{path}: cannot read the camera path ({exc})") from None

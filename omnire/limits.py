@@ -19,6 +19,8 @@ MAX_IMAGE_SIDE = 8192
 """Largest rendered image width or height, pixels."""
 DEFAULT_FRAME_CAP = 20_000
 """Most output frames a camera path may have unless raised (1000 s at 20 fps)."""
+MAX_MOTION_FRAMES = 100_000
+"""Most frames a body-pose sequence may have (over 13 minutes at 120 fps)."""
 POSITION_MARGIN_M = 1000.0
 """How far (metres) beyond the scene's extent a camera or an actor may be placed."""
 BYTES_PER_PATH_FRAME = 2048
@@ -41,10 +43,10 @@ def check_image_size(width: int, height: int, field: str) -> None:
             raise ConfigError(f"{field} {width}x{height}: the {side} must be 1..{MAX_IMAGE_SIDE} pixels")
 
 
-def check_frame_count(count: int, cap: int, field: str, flag: str = "--frame-cap") -> None:
-    """At most ``cap`` output frames (raise it with ``flag``)."""
+def check_frame_count(count: int, cap: int, field: str, hint: str = "raise it with --frame-cap") -> None:
+    """At most ``cap`` frames; ``hint`` says what to do otherwise."""
     if count > cap:
-        raise ConfigError(f"{field}: {count} frames is more than the cap of {cap} (raise it with {flag})")
+        raise ConfigError(f"{field}: {count} frames is more than the cap of {cap} ({hint})")
 
 
 def scene_extent(scene) -> tuple[np.ndarray, np.ndarray]:
@@ -86,3 +88,15 @@ def check_offset(offset, scene, field: str, margin: float = POSITION_MARGIN_M) -
 def file_size_cap(cap: int) -> int:
     """Largest camera-path file accepted for a frame cap of ``cap``."""
     return cap * BYTES_PER_PATH_FRAME + (1 << 16)
+
+
+def check_npz_rows(npz, cap: int, source: str, hint: str = "raise it with --frame-cap") -> None:
+    """Refuse an open npz (``numpy.load`` result) any of whose arrays has more than ``cap``
+    rows, reading only the array headers: a compressed file of zeros that would unpack to
+    gigabytes is refused before anything is decompressed."""
+    for key in npz.files:
+        with npz.zip.open(f"{key}.npy") as f:
+            version = np.lib.format.read_magic(f)
+            shape, _, _ = (np.lib.format.read_array_header_1_0(f) if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0(f))
+        check_frame_count(int(shape[0]) if shape else 1, cap, f"{source}: '{key}'", hint)

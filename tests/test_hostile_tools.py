@@ -280,16 +280,18 @@ def test_batch_config_not_utf8(setup, tmp_path, capsys):
 
 
 def test_motion_npz_with_bad_fps(tmp_path):
-    """Issue 41 item 6: a body-pose sequence whose fps is an array or a string: one line
-    naming the file (read through the sim's loader; the demo run has no body model)."""
+    """Issue 41 items 3 and 6: a body-pose sequence whose fps is an array, a string or over the
+    cap, or of a million frames (compressed to a few kB): one line naming the file, nothing
+    decompressed (read through the sim's loader; the demo run has no body model)."""
     from omnire.errors import UserError
     from omnire_sim.edits import Motion, Where
     from omnire_sim.engine import load_body_sequence
 
-    for name, fps in [("non-scalar fps", np.array([30.0, 60.0])), ("non-numeric fps", np.array("fast")),
-                      ("fps 1e9", np.array(1e9)), ("fps nan", np.array(np.nan))]:
+    for name, fps, frames in [("non-scalar fps", np.array([30.0, 60.0]), 4), ("non-numeric fps", np.array("fast"), 4),
+                              ("fps 1e9", np.array(1e9), 4), ("fps nan", np.array(np.nan), 4),
+                              ("10^6 frames in a small file", np.array(30.0), 1_000_000)]:
         path = tmp_path / f"{name.replace(' ', '-')}.npz"
-        np.savez(path, body_pose=np.zeros((4, 23, 3)), fps=fps)
+        np.savez_compressed(path, body_pose=np.zeros((frames, 69), dtype=np.float32), fps=fps)
         traceback, code, text = None, 0, ""
         try:
             load_body_sequence(path, Motion("sequence", file=path), Where("scenario.toml", "[[actor]] #1", 3))

@@ -105,6 +105,12 @@ def test_flags_alone_define_a_batch(tmp_path):
     ('[[method]]\nname = "3dgs"\nargs = "--x"\nnum_cpu = 2\n', r"batch.toml:4: \[\[method\]\] #1, field 'num_cpu': unknown key"),
     ('[[methods]]\nname = "3dgs"\n', r"field 'methods': unknown key .* did you mean \[\[method\]\]"),
     ('steps = 1\nseeds = = 2\n', r"batch.toml: not valid TOML: .*line 2"),
+    # a multi-line string holding a table header and a '#' in a string do not move the lines
+    # (the core TOML reader, omnire/io/documents.py)
+    ('method_args = """--x\n[[method]]\n"""\nsteps = 2 # "\n[[method]]\nname = "a"\nargs = "--x #1"\nnum_cpus = -1\n',
+     r"batch.toml:8: \[\[method\]\] #1, field 'num_cpus': expected a positive number"),
+    ('num_cpus = nan\n', r"batch.toml:1: top level, field 'num_cpus': expected a finite number, got nan"),
+    ('a = ' + '[' * 1000 + ']' * 1000 + '\n', r"batch.toml line 1: nested more than 64 levels deep"),
 ])
 def test_toml_errors_name_the_line_and_field(tmp_path, text, expected):
     with pytest.raises(ConfigError, match=expected):

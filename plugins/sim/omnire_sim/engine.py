@@ -29,6 +29,7 @@ import torch
 
 from omnire.api import (
     MAX_FPS,
+    MAX_MOTION_FRAMES,
     ActorNode,
     ActorState,
     Camera,
@@ -36,6 +37,7 @@ from omnire.api import (
     SceneTime,
     UserError,
     axis_angle_to_rotmat,
+    check_npz_rows,
     interpolate_poses,
     rot_z,
 )
@@ -200,7 +202,10 @@ def load_body_sequence(path: Path, motion: Motion, where: Where) -> _BodySequenc
         raise where.error("motion", f"{path}: body-pose sequence file not found")
     try:
         with np.load(path, allow_pickle=False) as data:
+            check_npz_rows(data, MAX_MOTION_FRAMES, str(path), "use a shorter sequence")
             arrays = {k: np.asarray(data[k]) for k in data.files}
+    except UserError as exc:
+        raise where.error("motion", str(exc)) from None
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise where.error("motion", f"{path}: cannot read the npz ({exc})") from None
     if "body_pose" in arrays:
