@@ -21,7 +21,7 @@ seconds since the first loaded frame (``t = 0`` there). Arrays are numpy float64
 from __future__ import annotations
 
 import dataclasses
-import json
+import zipfile
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -32,6 +32,16 @@ from omnire.camera import Camera
 from omnire.data.scene import SceneData, SceneTime
 from omnire.errors import ConfigError, MissingFileError
 from omnire.interpolation import bracket, interpolate_poses
+from omnire.io.documents import load_json
+from omnire.limits import (
+    DEFAULT_FRAME_CAP,
+    check_fps,
+    check_frame_count,
+    check_image_size,
+    check_npz_rows,
+    check_positions,
+    file_size_cap,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,8 +100,7 @@ class CameraPath:
 
     def resized(self, width: int, height: int) -> "CameraPath":
         """Every camera rendering ``width`` x ``height`` pixels (K scaled per axis)."""
-        if width <= 0 or height <= 0:
-            raise ConfigError(f"image size {width}x{height}: both must be positive")
+        check_image_size(width, height, "image size")
         K = self.intrinsics.copy()
         for c, (w, h) in enumerate(self.sizes):
             K[c, 0] *= width / w
@@ -194,10 +203,15 @@ def _path(scene: SceneData, cams: list[int], seconds: np.ndarray, frames: np.nda
 
 # ---------------------------------------------------------------------- builders
 def recorded_path(scene: SceneData, cameras: Optional[Sequence[str]] = None,
-                  frames: Optional[Sequence[int]] = None, fps: Optional[float] = None) -> CameraPath:
-    """The recorded cameras at recorded ``frames`` (default: all), exactly as recorded."""
+                  frames: Optional[Sequence[int]] = None, fps: Optional[float] = None,
+                  frame_cap: int = DEFAULT_FRAME_CAP) -> CameraPath:
+    """The recorded cameras at recorded ``frames`` (default: all), exactly as recorded; more
+    than ``frame_cap`` frames are refused."""
     cams = _camera_indices(scene, cameras)
     idx = np.arange(scene.num_frames) if frames is None else np.asarray(list(frames), dtype=int)
+    check_frame_count(len(idx), frame_cap, "camera path frames")
+    if fps is not None:
+        check_fps(fps, "fps")
     bad = idx[(idx < 0) | (idx >= scene.num_frames)]
     if len(bad):
         raise ConfigError(f"frame {int(bad[0])}: outside the loaded range 0..{scene.num_frames - 1}")
@@ -220,46 +234,55 @@ def path_at_times(scene: SceneData, seconds: np.ndarray, cameras: Optional[Seque
 
 
 def interpolated_path(scene: SceneData, fps: float, cameras: Optional[Sequence[str]] = None,
-                      start: float = 0.0, end: Optional[float] = None) -> CameraPath:
-    """The recorded rig resampled at ``fps`` from ``start`` to ``end`` seconds (default: the
-    whole log), poses interpolated between recorded frames."""
-    if not fps > 0:
-        raise ConfigError(f"fps {fps}: must be > 0")
+                      start: float = 0.0, end: Optional[float] = None,
+                      frame_cap: int = DEFAULT_FRAME_CAP) -> CameraPath:
+    """The recorded rig resampled at ``fps`` (at most :data:`omnire.limits.MAX_FPS`) from
+    ``start`` to ``end`` seconds (default: the whole log), poses interpolated between
+    recorded frames; more than ``frame_cap`` frames are refused."""
+    fps = check_fps(fps, "fps")
     dur = log_duration(scene)
     end = dur if end is None else float(end)
     if not 0.0 <= start <= end <= dur + 1e-9:
         raise ConfigError(f"camera path window {start} .. {end} s: must satisfy 0 <= start <= end <= {dur:.6g} "
                           "(the log's length in seconds)")
     n = int(np.floor((end - start) * fps + 1e-6)) + 1
+    check_frame_count(n, frame_cap, f"camera path ({end - start:.6g} s at {fps:g} fps)")
     seconds = np.minimum(start + np.arange(n) / fps, dur)
     return path_at_times(scene, seconds, cameras, fps)
 
 
-def _load_pose_file(path: Path) -> dict[str, np.ndarray]:
+def _load_pose_file(path: Path, frame_cap: int) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise MissingFileError(f"{path}: camera path file not found (expected .npz or .json with 'seconds' (T,) "
                                "and 'rig_to_world' (T, 4, 4))")
+    size, limit = path.stat().st_size, file_size_cap(frame_cap)
+    if size > limit:
+        raise ConfigError(f"{path}: {size} bytes is more than a camera path of at most {frame_cap} frames needs "
+                          f"({limit} bytes; raise the frame cap with --frame-cap)")
     try:
         if path.suffix.lower() == ".json":
-            raw = json.loads(path.read_text())
+            raw = load_json(path, "camera path (JSON)")
             if not isinstance(raw, dict):
                 raise ValueError("top level must be an object")
             return {k: np.asarray(v, dtype=np.float64) for k, v in raw.items()}
         with np.load(path, allow_pickle=False) as data:
+            check_npz_rows(data, frame_cap, str(path))
             return {k: np.asarray(data[k], dtype=np.float64) for k in data.files}
-    except (ValueError, OSError, TypeError) as exc:
+    except (ValueError, OSError, TypeError, EOFError, zipfile.BadZipFile) as exc:
         raise ConfigError(f"{path}: cannot read the camera path ({exc})") from None
 
 
 def file_path(scene: SceneData, path: Path, cameras: Optional[Sequence[str]] = None,
-              fps: Optional[float] = None) -> CameraPath:
+              fps: Optional[float] = None, frame_cap: int = DEFAULT_FRAME_CAP) -> CameraPath:
     """Rig poses from a file: ``seconds`` (T,) increasing path times since the log's first
     frame and ``rig_to_world`` (T, 4, 4) rig (ego) poses in the scene's world frame (x
     forward, y left, z up); optional ``scene_seconds`` (T,) the scene moment each frame
     shows (default: ``seconds``). Each camera is mounted on the rig as recorded (its
-    camera-to-rig transform at the nearest recorded frame). npz or JSON (same keys)."""
+    camera-to-rig transform at the nearest recorded frame). npz or JSON (same keys). At most
+    ``frame_cap`` frames; rig positions within the scene's extent plus
+    :data:`omnire.limits.POSITION_MARGIN_M`; the frame rate within :data:`omnire.limits.MAX_FPS`."""
     path = Path(path)
-    data = _load_pose_file(path)
+    data = _load_pose_file(path, frame_cap)
     for key in ("seconds", "rig_to_world"):
         if key not in data:
             raise ConfigError(f"{path}: missing '{key}' (expected 'seconds' (T,) and 'rig_to_world' (T, 4, 4); "
@@ -268,8 +291,10 @@ def file_path(scene: SceneData, path: Path, cameras: Optional[Sequence[str]] = N
     T = len(sec) if sec.ndim == 1 else -1
     if sec.ndim != 1 or T == 0 or rig.shape != (T, 4, 4):
         raise ConfigError(f"{path}: 'seconds' {sec.shape} must be (T,) and 'rig_to_world' {rig.shape} (T, 4, 4), T > 0")
+    check_frame_count(T, frame_cap, f"{path}: 'seconds'")
     if not (np.isfinite(sec).all() and np.isfinite(rig).all()):
         raise ConfigError(f"{path}: non-finite values in 'seconds' or 'rig_to_world'")
+    check_positions(rig[:, :3, 3], scene, f"{path}: 'rig_to_world'")
     if T > 1 and not np.all(np.diff(sec) > 0):
         raise ConfigError(f"{path}: 'seconds' must be strictly increasing")
     R = rig[:, :3, :3]
@@ -288,5 +313,6 @@ def file_path(scene: SceneData, path: Path, cameras: Optional[Sequence[str]] = N
     c2w = np.stack([np.linalg.inv(recorded_rig[near]) @ np.asarray(scene.cameras[c].cam_to_world)[near] for c in cams])
     c2w = rig[None] @ c2w
     if fps is None:
-        fps = float(1.0 / np.median(np.diff(sec))) if T > 1 else recorded_fps(scene)
-    return _path(scene, cams, sec, frames, c2w, rig, fps)
+        fps = check_fps(float(1.0 / np.median(np.diff(sec))) if T > 1 else recorded_fps(scene),
+                        f"{path}: the frame rate of 'seconds'")
+    return _path(scene, cams, sec, frames, c2w, rig, check_fps(fps, "fps"))

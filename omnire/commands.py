@@ -102,6 +102,8 @@ def render_main(argv: list[str], plugins) -> int:
 
     from omnire.data.scene import View
     from omnire.io.images import write_png
+    from omnire.io.outputs import OutputError, check_location, staged_files
+    from omnire.rundir import RunDirectory
     from omnire.runtime import Reconstruction
 
     args = tyro.cli(RenderArgs, args=argv, prog="omnire render")
@@ -117,10 +119,14 @@ def render_main(argv: list[str], plugins) -> int:
         frames = {"test": scene.test_frames, "train": scene.train_frames,
                   "all": np.arange(scene.num_frames)}[args.split].tolist()
     out_dir = args.output or Path(args.run_dir) / "renders"
+    if Path(out_dir).resolve() == Path(args.run_dir).resolve():
+        raise OutputError(f"--output {out_dir}: is the run directory; name a folder (default: <run dir>/renders)")
+    check_location(out_dir, "--output", (RunDirectory(args.run_dir).data_path(),), replaces=False)
     if args.fps is not None and not (args.video and args.fps > 0):
         raise ConfigError(f"--fps {args.fps}: needs --video and a rate > 0")
     count = 0
-    with torch.no_grad(), contextlib.ExitStack() as stack:
+    # images and videos appear in out_dir when all are written (a failed write leaves none)
+    with torch.no_grad(), staged_files(out_dir) as staging, contextlib.ExitStack() as stack:
         videos, path = {}, None
         if args.video:  # the camera path shared with omnire sim (omnire/camerapath.py)
             from omnire.camerapath import interpolated_path, log_seconds, recorded_fps
@@ -132,16 +138,16 @@ def render_main(argv: list[str], plugins) -> int:
                 path = interpolated_path(scene, args.fps, [scene.cameras[c].name for c in cams],
                                          float(sec[frames[0]]), float(sec[frames[-1]]))
             for c in cams:
-                videos[c] = stack.enter_context(Mp4Writer(out_dir / f"{scene.cameras[c].name}.mp4",
+                videos[c] = stack.enter_context(Mp4Writer(staging / f"{scene.cameras[c].name}.mp4",
                                                           args.fps or recorded_fps(scene)))
         for f in frames:
             for c in cams:
                 view = View(c, int(f))
                 result = recon.render(recon.camera(view).shifted(args.shift), recon.time(view.frame))
                 name = f"{scene.source_frames[f]:03d}_{scene.cameras[c].name}"
-                write_png(out_dir / f"{name}.png", result.rgb)
+                write_png(staging / f"{name}.png", result.rgb)
                 if args.depth:
-                    write_png(out_dir / f"{name}_depth.png", result.depth * 1000.0, bits=16)
+                    write_png(staging / f"{name}_depth.png", result.depth * 1000.0, bits=16)
                 if videos and path is None:
                     videos[c].append(result.rgb)
                 count += 1

@@ -133,6 +133,83 @@ class RunDirectory:
                 found.append((int(m.group(1)), p))
         return sorted(found)
 
+    def checkpoint_steps(self) -> list[int]:
+        """Steps of the checkpoint files, ascending."""
+        return [step for step, _ in self.checkpoints()]
+
+    def recorded_argv(self) -> Optional[list[str]]:
+        """The train arguments recorded in ``run.json``, or None when it is absent or unreadable
+        (for callers that only compare; :meth:`read_info` reports what is wrong)."""
+        try:
+            argv = json.loads(self.info_path.read_text(encoding="utf-8")).get("argv")
+        except (OSError, ValueError, AttributeError):
+            return None
+        return [str(a) for a in argv] if isinstance(argv, list) else None
+
+    def data_path(self) -> Optional[Path]:
+        """The dataset directory the run was trained on (``--data`` of the recorded command;
+        None when not recorded)."""
+        argv = self.recorded_argv() or []
+        for i, a in enumerate(argv):
+            if a == "--data" and i + 1 < len(argv):
+                return Path(argv[i + 1])
+            if a.startswith("--data="):
+                return Path(a.split("=", 1)[1])
+        return None
+
+    def read_metrics(self) -> list[dict]:
+        """The records of ``metrics.jsonl`` as one uninterrupted run would have written them.
+
+        A resumed run continues from its checkpoint: records past the checkpoint's step that an
+        interrupted attempt left are dropped where the steps go back, and training wall time,
+        which a resumed trainer may restart from zero, is offset so that it keeps growing across
+        attempts (by the time of the last kept record, i.e. exact when checkpoints fall on
+        logged steps). Unparsable lines (a write cut by a kill) are skipped.
+        """
+        if not self.metrics_path.is_file():
+            return []
+        out: list[dict] = []
+        offset = 0.0
+        for line in self.metrics_path.read_text(errors="replace").splitlines():
+            try:
+                r = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if not isinstance(r, dict) or not isinstance(r.get("step"), int):
+                continue
+            r = dict(r)
+            raw_wall = float(r.get("wall", 0.0))
+            if out:
+                prev = out[-1]
+                same_kind = ("eval" in r) == ("eval" in prev)
+                went_back = r["step"] < prev["step"] or (r["step"] == prev["step"] and same_kind)
+                if went_back:  # a new attempt after a resume: keep what precedes its first step
+                    out = [p for p in out if p["step"] < r["step"]]
+                    kept = out[-1]["wall"] if out else 0.0
+                    offset = kept if raw_wall < kept else 0.0  # 0: the trainer restored its clock
+                elif raw_wall + offset < prev["wall"] - 1e-9:  # same steps onwards, wall restarted
+                    offset = prev["wall"]
+            r["wall"] = raw_wall + offset
+            out.append(r)
+        return out
+
+    def results(self) -> Optional[dict]:
+        """A finished run's results in ``omnire bench train``'s form: ``curve`` (one entry per
+        evaluation: step, train_seconds and the :func:`flatten_eval` metrics), ``final``,
+        ``steps_done`` and ``train_its``; None when it has no final evaluation."""
+        records = self.read_metrics()
+        final = next((r for r in reversed(records) if r.get("final") and isinstance(r.get("eval"), dict)), None)
+        if final is None:
+            return None
+        curve = [{"step": r["step"], "train_seconds": r["wall"], **flatten_eval(r["eval"])}
+                 for r in records if isinstance(r.get("eval"), dict)]
+        logged = [r for r in records if "its" in r]
+        last = logged[-1] if logged else None
+        its = last["step"] / last["wall"] if last and last["wall"] > 0 else float("nan")
+        flat = flatten_eval(final["eval"])
+        flat["train_seconds"] = final["wall"]  # over every attempt, not only the last one
+        return {"curve": curve, "final": flat, "steps_done": final["step"], "train_its": its}
+
     def remove_temporary_files(self) -> list[Path]:
         """Delete leftovers of interrupted atomic writes (``.step-*.pt.*.tmp``)."""
         removed = []
@@ -172,6 +249,17 @@ class RunDirectory:
             if isinstance(record, dict) and int(record.get("step", 0)) <= step and not record.get("final"):
                 kept.append(line)
         atomic_write_text(self.metrics_path, "".join(k + "\n" for k in kept))
+
+
+def flatten_eval(ev: dict) -> dict:
+    """An evaluation record -> one flat dict: top-level numbers plus ``reconstruction.*`` and
+    ``novel_view.*`` (the keys the benchmark tables and plots read)."""
+    flat = {k: v for k, v in ev.items() if not isinstance(v, dict)}
+    for split in ("reconstruction", "novel_view"):
+        for k, v in (ev.get(split) or {}).items():
+            if not isinstance(v, dict):
+                flat[f"{split}.{k}"] = v
+    return flat
 
 
 CHECKPOINT_KEYS = ("step", "model")

@@ -28,6 +28,7 @@ import tyro
 
 from omnire.bench.machine import machine_info
 from omnire.io.atomic import atomic_write_text
+from omnire.rundir import RunDirectory
 
 
 @dataclasses.dataclass
@@ -99,15 +100,13 @@ def _run_method(args: TrainBenchArgs, entry: str) -> dict:
     if proc.returncode != 0:
         result["error"] = (proc.stderr or proc.stdout)[-2000:]
         return result
-    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
-    result["curve"] = [{"step": r["step"], "train_seconds": r["wall"], **_flatten(r["eval"])}
-                       for r in records if "eval" in r]
-    steps = [r for r in records if "its" in r]
-    result["train_its"] = (steps[-1]["step"] / steps[-1]["wall"]) if steps and steps[-1]["wall"] > 0 else float("nan")
-    final = next(r for r in reversed(records) if r.get("final"))
-    result["final"] = _flatten(final["eval"])
-    result["steps_done"] = final["step"]
-    result["rasterizer"] = json.loads((run_dir / "run.json").read_text()).get("rasterizer")
+    run = RunDirectory(run_dir)
+    results = run.results()
+    if results is None:
+        result["error"] = f"{run.metrics_path}: no final evaluation recorded"
+        return result
+    result.update(results)
+    result["rasterizer"] = run.read_info().extra.get("rasterizer")
     return result
 
 
@@ -121,14 +120,6 @@ def rasterizer_line(results: list[dict]) -> str:
         return f"Rasterizer: {kinds[0] if kinds else '-'} (every run)."
     return ("**Warning: the runs used different rasterizers, so their speeds (and any difference the "
             "rasterizers make) are not comparable**: " + ", ".join(f"{m}: {k}" for m, k in used.items()) + ".")
-
-
-def _flatten(ev: dict) -> dict:
-    out = {k: v for k, v in ev.items() if not isinstance(v, dict)}
-    for split in ("reconstruction", "novel_view"):
-        for k, v in ev.get(split, {}).items():
-            out[f"{split}.{k}"] = v
-    return out
 
 
 def _fmt(v, d=2) -> str:

@@ -29,9 +29,9 @@ def write_png(path: str | Path, image: torch.Tensor | np.ndarray, bits: int = 8)
         if out is None or not out.open(tmp, oiio.ImageSpec(w, h, c, fmt)):
             raise OSError(f"{path}: cannot write image ({oiio.geterror()})")
         ok = out.write_image(np.ascontiguousarray(data))
-        out.close()
-        if not ok:
-            raise OSError(f"{path}: writing failed ({oiio.geterror()})")
+        ok = out.close() and ok  # close flushes: a full disk shows here
+        if not ok or os.path.getsize(tmp) == 0:
+            raise OSError(f"{path}: writing failed ({oiio.geterror() or 'no space left or write error'})")
         os.chmod(tmp, 0o666 & ~current_umask())
         os.replace(tmp, path)
     except BaseException:

@@ -9,7 +9,7 @@ from typing import Optional
 
 import tyro
 
-from omnire.api import ConfigError, UserError, atomic_write_text
+from omnire.api import ConfigError, UserError, atomic_write_text, check_location, load_json, writing
 from omnire_batch.jobs import (
     BatchArgs,
     Job,
@@ -138,11 +138,16 @@ def main(argv: list[str], plugins) -> int:
         path = output / "results.json"
         if not path.is_file():
             raise ConfigError(f"{path}: no results.json to report from (run without --report-only first)")
-        saved = json.loads(path.read_text())
-        console.print(write_report(output, saved["results"], saved["args"], args.plot, console.print), markup=False,
-                      highlight=False, soft_wrap=True)
+        saved = load_json(path, "batch results file")
+        if not isinstance(saved, dict) or not {"results", "args"} <= set(saved):
+            raise ConfigError(f"{path}: not a batch results file (expected an object with 'results' and 'args')")
+        with writing(output, "cannot write the batch's report"):
+            text = write_report(output, saved["results"], saved["args"], args.plot, console.print)
+        console.print(text, markup=False, highlight=False, soft_wrap=True)
         return 0
     jobs = build_jobs(args, data, src, plugins)
+    # the batch writes into --output (runs, logs, records, report): never into a dataset it reads
+    check_location(output, "--output", sorted({j.scene.data for j in jobs if j.scene.synth is None}), replaces=False)
     steps = plan(jobs, args.retry_failed)
     changed = [j for j, what, _ in steps if what == "changed"]
     if changed and not args.redo_changed:
@@ -178,7 +183,8 @@ def main(argv: list[str], plugins) -> int:
         from omnire_batch import cluster
         from omnire_batch.report import write_results_json
 
-        output.mkdir(parents=True, exist_ok=True)
+        with writing(output, "cannot create the batch's output directory"):
+            output.mkdir(parents=True, exist_ok=True)
         try:
             console.print(cluster.start_ray(args.address, args.local_cpus), highlight=False)
         except ConnectionError as exc:
@@ -195,9 +201,10 @@ def main(argv: list[str], plugins) -> int:
 
             def on_result(r: dict) -> None:
                 job = next(j for j in to_run if j.key == r["job"])
-                atomic_write_text(job.record_path, json.dumps(r, indent=2, default=str))
                 results[job.key] = r
-                write_results_json(output, all_results(), meta)
+                with writing(output, "cannot write the batch's results"):
+                    atomic_write_text(job.record_path, json.dumps(r, indent=2, default=str))
+                    write_results_json(output, all_results(), meta)
                 display.result(r)
 
             def on_stop(level: int) -> None:
@@ -213,7 +220,8 @@ def main(argv: list[str], plugins) -> int:
 
             ray.shutdown()
     final = all_results()
-    text = write_report(output, final, meta, args.plot, console.print)
+    with writing(output, "cannot write the batch's report"):
+        text = write_report(output, final, meta, args.plot, console.print)
     console.print(text, markup=False, highlight=False, soft_wrap=True)
     bad = [r for r in final if r.get("status") != "ok"]
     for r in bad:

@@ -38,12 +38,12 @@ import math
 import os
 import re
 import shlex
-import tomllib
 import typing
 from pathlib import Path
 from typing import Any, Optional
 
-from omnire.api import ConfigError
+from omnire.api import ConfigError, TomlDocument
+from omnire.api import load_toml as load_toml_document
 from omnire_batch.spec import Job, MethodEntry, Scene, Variant
 
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]*$")
@@ -124,62 +124,40 @@ TABLE_KEYS = {
 
 # ----------------------------------------------------------------------------- TOML
 class _Source:
-    """A TOML file's text, to point errors at lines (tomllib keeps no positions)."""
+    """A batch file's parsed TOML with the positions of its tables and keys, to name them in errors."""
 
-    def __init__(self, path: Path, text: str) -> None:
-        self.path, self.lines = path, text.splitlines()
+    def __init__(self, doc: TomlDocument) -> None:
+        self.path, self.doc = Path(doc.source), doc
 
-    def line(self, table: Optional[str], index: int = 0, key: Optional[str] = None) -> Optional[int]:
-        """1-based line of ``key`` in the ``index``-th ``[[table]]`` (top level: table None), or of
-        that table's header when ``key`` is None."""
-        current, count = None, -1
-        for no, raw in enumerate(self.lines, 1):
-            s = raw.split("#", 1)[0].strip()
-            if s.startswith("["):
-                current = s.strip("[]").strip()
-                if current == table:
-                    count += 1
-                    if key is None and count == index:
-                        return no
-                continue
-            if current == table and (table is None or count == index) and key is not None:
-                if re.match(rf'^\s*["\']?{re.escape(key)}["\']?\s*=', raw):
-                    return no
-        return None
+    def has(self, table: str, index: int, key: str) -> bool:
+        """Whether ``key`` is written in the ``index``-th ``[[table]]``."""
+        return key in self.doc.key_lines(table, index)
 
     def where(self, table: Optional[str], index: int = 0, key: Optional[str] = None) -> str:
-        line = self.line(table, index, key)
-        if line is None and key is not None:
-            line = self.line(table, index)
+        """``FILE:LINE: [[table]] #N, field 'key'`` (top level: table None)."""
+        line = self.doc.line(table or "", index, key) if (table or key) else None
         place = f"{self.path}:{line}" if line else str(self.path)
         what = f"[[{table}]] #{index + 1}" if table else "top level"
         return f"{place}: {what}" + (f", field '{key}'" if key else "")
 
 
 def load_toml(path: Path) -> tuple[dict, _Source]:
-    """Parse a batch TOML file; syntax errors name the file and line."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the batch file ({exc.strerror or exc})") from exc
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
-    return data, _Source(path, text)
+    """Parse a batch TOML file; unreadable, non-UTF-8, invalid or too deeply nested files are
+    one-line errors naming the file (and line)."""
+    doc = load_toml_document(path, "batch file")
+    return doc.data, _Source(doc)
 
 
 def _check_type(value: Any, kind: str, where: str) -> Any:
     ok = {
         "str": isinstance(value, str),
         "int": isinstance(value, int) and not isinstance(value, bool),
-        "float": isinstance(value, (int, float)) and not isinstance(value, bool),
+        "float": isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value),
         "bool": isinstance(value, bool),
         "list[int]": isinstance(value, list) and all(isinstance(v, int) and not isinstance(v, bool) for v in value),
     }[kind]
     if not ok:
-        expected = {"list[int]": "a list of integers, e.g. [0, 1]", "float": "a number", "int": "an integer",
+        expected = {"list[int]": "a list of integers, e.g. [0, 1]", "float": "a finite number", "int": "an integer",
                     "str": "a string", "bool": "true or false"}[kind]
         raise ConfigError(f"{where}: expected {expected}, got {value!r}")
     return float(value) if kind == "float" else value
@@ -367,18 +345,21 @@ def build_jobs(args: BatchArgs, data: Optional[dict] = None, src: Optional[_Sour
 
     if args.steps < 1:
         raise ConfigError(f"{where('steps')}: expected a positive number of steps, got {args.steps}")
-    if args.seconds < 0 or args.job_timeout < 0:
-        key = "seconds" if args.seconds < 0 else "job_timeout"
-        raise ConfigError(f"{where(key)}: expected seconds >= 0, got {getattr(args, key)}")
+    for key in ("seconds", "job_timeout"):
+        if not (math.isfinite(getattr(args, key)) and getattr(args, key) >= 0):
+            raise ConfigError(f"{where(key)}: expected a finite number of seconds >= 0, got {getattr(args, key)}")
+    if args.local_cpus < 0:
+        raise ConfigError(f"{where('local_cpus')}: expected a number of CPUs >= 0 (0: every core), "
+                          f"got {args.local_cpus}")
     if args.checkpoints < 1:
         raise ConfigError(f"{where('checkpoints')}: expected at least 1 evaluation, got {args.checkpoints}")
     if args.checkpoint_every < 0:
         raise ConfigError(f"{where('checkpoint_every')}: expected steps >= 0, got {args.checkpoint_every}")
-    if not args.num_cpus > 0 or args.num_gpus < 0 or args.memory_gb < 0 or args.threads < 0:
-        key = next(k for k in ("num_cpus", "num_gpus", "memory_gb", "threads")
-                   if (getattr(args, k) <= 0 if k == "num_cpus" else getattr(args, k) < 0))
-        raise ConfigError(f"{where(key)}: expected a {'positive' if key == 'num_cpus' else 'non-negative'} number, "
-                          f"got {getattr(args, key)}")
+    for key in ("num_cpus", "num_gpus", "memory_gb", "threads"):
+        value = getattr(args, key)
+        if not (math.isfinite(value) and (value > 0 if key == "num_cpus" else value >= 0)):
+            raise ConfigError(f"{where(key)}: expected a finite {'positive' if key == 'num_cpus' else 'non-negative'} "
+                              f"number, got {value}")
     seeds = list(args.seeds)
     if not seeds or len(set(seeds)) != len(seeds) or any(s < 0 for s in seeds):
         raise ConfigError(f"{where('seeds')}: expected distinct non-negative integers, got {seeds}")
@@ -424,7 +405,7 @@ def _check_names(plugins, scenes: list[Scene], methods: list[MethodEntry], src: 
     known_dp = list(plugins.dataparsers.names())
     for i, m in enumerate(methods):
         if m.method not in known_methods:
-            place = src.where("method", i, "method" if src.line("method", i, "method") else "name") if src else \
+            place = src.where("method", i, "method" if src.has("method", i, "method") else "name") if src else \
                 f"--methods {m.label}"
             raise ConfigError(f"{place}: unknown method {m.method!r} (installed: {', '.join(known_methods)})")
     for i, s in enumerate(scenes):

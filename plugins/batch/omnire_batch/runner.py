@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from omnire_batch.spec import Job, Scene
-from omnire_batch.runs import run_results, run_state
+from omnire.rundir import RunDirectory
+from omnire_batch.runs import run_state
 
 Report = Callable[[str, dict], bool]
 """report(job key, progress info) -> whether the batch asks the job to stop."""
@@ -216,6 +217,14 @@ def execute_job(job: Job, report: Optional[Report] = None, scene_error: Optional
         lock.close()
 
 
+def _supersede(job: Job) -> Path:
+    """Move the job's run directory to ``<output>/superseded/<time>/<scene>/<name>``."""
+    dest = job.output / "superseded" / time.strftime("%Y%m%d-%H%M%S") / job.scene.name / job.name
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(job.run_dir, dest)
+    return dest
+
+
 def _execute_locked(job: Job, result: dict, done, say, redo_changed: bool, stop_grace_s: float, lock) -> dict:
     identity = job.identity()
     state, step = run_state(job.run_dir, identity)
@@ -223,14 +232,12 @@ def _execute_locked(job: Job, result: dict, done, say, redo_changed: bool, stop_
         if not redo_changed:
             return done(error=f"{job.run_dir}: made by a different command (budget or flags changed); "
                               "rerun with --redo-changed to move it to <output>/superseded/ and train again")
-        dest = job.output / "superseded" / time.strftime("%Y%m%d-%H%M%S") / job.scene.name / job.name
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        os.replace(job.run_dir, dest)
+        _supersede(job)
         state, step = "new", None
     if state == "finished":
-        return done(status="ok", exit_code=0, **run_results(job.run_dir))
+        return done(status="ok", exit_code=0, **RunDirectory(job.run_dir).results())
     if state == "partial":  # nothing to resume from; the trainer refuses an existing directory
-        shutil.rmtree(job.run_dir)
+        _supersede(job)  # moved aside, not deleted: a run directory is never removed
     cmd = [sys.executable, "-m", "omnire.cli", *job.train_args()]
     if state == "resume":
         cmd += ["--trainer.resume", str(job.run_dir)]
@@ -277,7 +284,7 @@ def _execute_locked(job: Job, result: dict, done, say, redo_changed: bool, stop_
         raise
     tail = log_tail(job.log_path, start)
     if rc == 0 and stop_reason is None:
-        res = run_results(job.run_dir)
+        res = RunDirectory(job.run_dir).results()
         if res is not None:
             return done(status="ok", exit_code=0, **res)
         return done(exit_code=0, error=f"omnire train exited 0 but {job.run_dir}/metrics.jsonl has no final "

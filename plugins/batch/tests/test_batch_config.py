@@ -8,7 +8,8 @@ import pytest
 from omnire.api import ConfigError
 from omnire.plugins import load_plugins
 from omnire_batch.jobs import BENCHMARKS, BatchArgs, args_with_toml, build_jobs, config_path_in, load_toml
-from omnire_batch.runs import read_metrics, run_results, run_state
+from omnire.rundir import RunDirectory
+from omnire_batch.runs import run_state
 
 GOOD = """\
 steps = 300
@@ -104,6 +105,12 @@ def test_flags_alone_define_a_batch(tmp_path):
     ('[[method]]\nname = "3dgs"\nargs = "--x"\nnum_cpu = 2\n', r"batch.toml:4: \[\[method\]\] #1, field 'num_cpu': unknown key"),
     ('[[methods]]\nname = "3dgs"\n', r"field 'methods': unknown key .* did you mean \[\[method\]\]"),
     ('steps = 1\nseeds = = 2\n', r"batch.toml: not valid TOML: .*line 2"),
+    # a multi-line string holding a table header and a '#' in a string do not move the lines
+    # (the core TOML reader, omnire/io/documents.py)
+    ('method_args = """--x\n[[method]]\n"""\nsteps = 2 # "\n[[method]]\nname = "a"\nargs = "--x #1"\nnum_cpus = -1\n',
+     r"batch.toml:8: \[\[method\]\] #1, field 'num_cpus': expected a positive number"),
+    ('num_cpus = nan\n', r"batch.toml:1: top level, field 'num_cpus': expected a finite number, got nan"),
+    ('a = ' + '[' * 1000 + ']' * 1000 + '\n', r"batch.toml line 1: nested more than 64 levels deep"),
 ])
 def test_toml_errors_name_the_line_and_field(tmp_path, text, expected):
     with pytest.raises(ConfigError, match=expected):
@@ -162,17 +169,17 @@ def test_metrics_of_a_resumed_run_read_as_one_run(tmp_path):
     _write_metrics(run, first + second + [final])
     with open(run / "metrics.jsonl", "a") as f:
         f.write('{"step": 2')
-    recs = read_metrics(run)
+    recs = RunDirectory(run).read_metrics()
     steps = [r["step"] for r in recs]
     assert steps == [25, 50, 75, 100, 100, 125, 150, 175, 200, 200]
     assert [r["wall"] for r in recs if "its" in r] == [2.5, 5.0, 7.5, 10.0, 12.5, 15.0, 17.5, 20.0]
-    res = run_results(run)
+    res = RunDirectory(run).results()
     assert res["steps_done"] == 200 and res["final"]["train_seconds"] == 20.0
     assert [c["step"] for c in res["curve"]] == [100, 200] and res["train_its"] == 10.0
     assert res["final"]["novel_view.copy_full_psnr"] == 18.0 and res["final"]["num_gaussians"] == 12
     # a trainer that truncates on resume and keeps its clock: nothing to fix
     _write_metrics(run, first[:5] + [{"step": s, "wall": s / 10, "its": 10.0} for s in (125, 150)])
-    assert [r["wall"] for r in read_metrics(run) if "its" in r] == [2.5, 5.0, 7.5, 10.0, 12.5, 15.0]
+    assert [r["wall"] for r in RunDirectory(run).read_metrics() if "its" in r] == [2.5, 5.0, 7.5, 10.0, 12.5, 15.0]
 
 
 def test_run_state(tmp_path):

@@ -8,7 +8,15 @@ import sys
 import time
 from pathlib import Path
 
-from omnire_batch.runs import run_results, checkpoint_steps, read_metrics
+from omnire.rundir import RunDirectory
+
+
+def checkpoint_steps(run):
+    return RunDirectory(run).checkpoint_steps()
+
+
+def read_metrics(run):
+    return RunDirectory(run).read_metrics()
 
 SMALL = "--method.nodes.background.max-lidar-points 2000 --method.nodes.background.num-far-points 200"
 ENV = dict(os.environ, COLUMNS="200", OMP_NUM_THREADS="1")
@@ -162,7 +170,7 @@ def test_killed_batch_resumes_from_the_newest_checkpoint(tmp_path):
         except AssertionError:
             break
         time.sleep(0.5)
-    orphan_finished = run_results(run) is not None
+    orphan_finished = RunDirectory(run).results() is not None
     before = {s: (run / "checkpoints" / f"step-{s:06d}.pt").stat().st_mtime_ns for s in checkpoint_steps(run)}
     newest = max(before)
     assert newest > first[-1]

@@ -8,7 +8,15 @@ from typing import Optional
 
 import tyro
 
-from omnire.api import ConfigError, UserError
+from omnire.api import (
+    ConfigError,
+    RunDirectory,
+    UserError,
+    check_location,
+    check_output_dir,
+    staged_directory,
+    staged_files,
+)
 
 
 @dataclasses.dataclass
@@ -40,17 +48,23 @@ class ExportError(UserError):
     """The export cannot be written as asked."""
 
 
+EXPORT_TOOL = "omnire export"
+EXPORT_KINDS = (".ply", ".png", ".json")
+"""What omnire export writes into a --per-node folder (what --overwrite may replace)."""
+
+
 def check_output(args: ExportArgs) -> None:
-    """Refuse outputs that exist (unless --overwrite) or have the wrong form, before loading."""
+    """Refuse outputs that exist (unless --overwrite) or have the wrong form, before loading;
+    nothing is written into the run directory or its dataset, and --overwrite replaces a
+    --per-node folder only when it is omnire export's own (omnire/io/outputs.py)."""
     out = args.output
     if args.chunk_rows <= 0:
         raise ConfigError(f"--chunk-rows {args.chunk_rows}: must be positive")
+    protect = (args.run_dir, RunDirectory(args.run_dir).data_path())
     if args.per_node:
-        if out.exists() and not out.is_dir():
-            raise ExportError(f"--output {out}: exists and is not a folder (--per-node writes a folder)")
-        if out.is_dir() and any(out.iterdir()) and not args.overwrite:
-            raise ExportError(f"--output {out}: folder is not empty (use --overwrite to replace its files)")
+        check_output_dir(out, EXPORT_TOOL, overwrite=args.overwrite, kinds=EXPORT_KINDS, protect=protect)
         return
+    check_location(out, "--output", protect)
     if out.suffix.lower() != ".ply":
         raise ExportError(f"--output {out}: expected a .ply file name (or use --per-node for a folder)")
     if out.is_dir():
@@ -89,9 +103,12 @@ def main(argv: list[str], plugins) -> int:
         if clash:
             raise ExportError(f"{clash[0]}: exists (use --overwrite to replace the sequence)")
     console = output_console()
-    with Progress(console=console, transient=True, disable=len(frames) < 2) as bar:
+    # written into staging first and moved into place when complete: a failed write leaves nothing
+    staging = staged_directory(args.output, EXPORT_TOOL) if args.per_node else staged_files(args.output.parent)
+    with Progress(console=console, transient=True, disable=len(frames) < 2) as bar, staging as folder:
         task = bar.add_task("export", total=len(frames))
-        written = export(recon, frames, args.output, args.per_node, sequence, args.chunk_rows,
+        target = folder if args.per_node else folder / args.output.name
+        written = export(recon, frames, target, args.per_node, sequence, args.chunk_rows,
                          progress=lambda _f: bar.advance(task))
     plys = [p for p in written.files if p.suffix == ".ply"]
     others = [p for p in written.files if p.suffix != ".ply"]

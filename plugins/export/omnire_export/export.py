@@ -222,26 +222,42 @@ def manifest_json(manifest: dict) -> str:
 
 
 def parse_frames(spec: str, num_frames: int) -> list[float]:
-    """``all``, ``a:b`` / ``a:b:step`` (end exclusive) or ``f1,f2,...`` -> frame positions
-    within 0..num_frames-1 (fractional frames allowed in lists)."""
+    """``all``, ``a:b`` / ``a:b:step`` (end exclusive, 0 <= a < b <= num_frames, step >= 1)
+    or ``f1,f2,...`` (distinct, fractional allowed) -> frame positions. One rule: a frame or
+    bound outside the scene's frames 0..num_frames-1 is refused, naming that range."""
     from omnire.api import ConfigError
 
     spec = spec.strip()
+    last = num_frames - 1
     if spec == "all":
         return [float(f) for f in range(num_frames)]
+    form = "expected 'all', 'start:stop[:step]' or a comma list of frames"
     try:
         if ":" in spec:
-            parts = [int(p) if p else None for p in spec.split(":")]
+            parts = spec.split(":")
             if len(parts) > 3:
                 raise ValueError
-            frames = [float(f) for f in range(num_frames)[slice(*parts)]]
+            start = int(parts[0]) if parts[0].strip() else 0
+            stop = int(parts[1]) if parts[1].strip() else num_frames
+            step = int(parts[2]) if len(parts) == 3 and parts[2].strip() else 1
+            if step < 1:
+                raise ConfigError(f"--frames {spec!r}: the step must be >= 1")
+            if not (0 <= start < stop <= num_frames):
+                raise ConfigError(f"--frames {spec!r}: start:stop must satisfy 0 <= start < stop <= {num_frames} "
+                                  f"(the scene's frames are 0..{last}, stop exclusive)")
+            frames = [float(f) for f in range(start, stop, step)]
         else:
             frames = [float(p) for p in spec.split(",") if p.strip()]
     except ValueError:
-        raise ConfigError(f"--frames {spec!r}: expected 'all', 'start:stop[:step]' or a comma list of frames") from None
-    bad = [f for f in frames if not (0 <= f <= num_frames - 1) or math.isnan(f)]
+        raise ConfigError(f"--frames {spec!r}: {form}") from None
+    bad = [f for f in frames if math.isnan(f) or not 0 <= f <= last]
     if bad or not frames:
-        raise ConfigError(f"--frames {spec!r}: frames must lie in 0..{num_frames - 1} (got {bad or 'none'})")
+        raise ConfigError(f"--frames {spec!r}: frames must lie in 0..{last} (got {bad or 'none'})")
+    seen: set[float] = set()
+    for f in frames:
+        if f in seen:
+            raise ConfigError(f"--frames {spec!r}: frame {f:g} is listed more than once")
+        seen.add(f)
     return frames
 
 

@@ -16,6 +16,7 @@ import torch
 from plyfile import PlyData
 
 from omnire.api import Gaussians, RasterSettings, Splats, UserError
+from omnire.io.outputs import MARKER
 from omnire.runtime import Reconstruction
 from omnire_export.cli import main as export_main
 from omnire_export.ply import PLY_PROPERTIES
@@ -161,7 +162,7 @@ def test_per_node_sequence_rigid_flags(tiny_run, plugins, recon, tmp_path):
     out = tmp_path / "seq"
     assert export_main([str(tiny_run), "--frames", "all", "--per-node", "--output", str(out)], plugins) == 0
     F = recon.scene.num_frames
-    assert sorted(p.name for p in out.iterdir()) == sorted([f"frame_{f:04d}" for f in range(F)] + ["sky.png"])
+    assert sorted(p.name for p in out.iterdir()) == sorted([f"frame_{f:04d}" for f in range(F)] + ["sky.png", MARKER])
     shapes, flags = {}, {}
     for f in range(F):
         manifest = json.loads((out / f"frame_{f:04d}" / "poses.json").read_text())

@@ -5,16 +5,14 @@ Everything that can be wrong (the scenario, the run, asset runs, the camera path
 directory) is checked before the first pixel is rendered, so a bad scenario writes nothing.
 Frames and videos are written into a hidden staging directory beside the output, which is
 renamed into place when everything is done (with ``--overwrite`` the old output is replaced
-only then): an interrupted run leaves no partial output under the final name. Nothing is
-written into the run directory.
+only then, and only when it is omnire sim's own: omnire/io/outputs.py): an interrupted or
+failed run leaves no partial output. Nothing is written into the run directory or its dataset.
 """
 from __future__ import annotations
 
 import contextlib
 import dataclasses
 import json
-import os
-import shutil
 import time
 from pathlib import Path
 from typing import Optional
@@ -23,11 +21,23 @@ import numpy as np
 import torch
 import tyro
 
-from omnire.api import ConfigError, Reconstruction, UserError, atomic_write_text, write_png
+from omnire.api import (
+    DEFAULT_FRAME_CAP,
+    ConfigError,
+    Reconstruction,
+    RunDirectory,
+    UserError,
+    atomic_write_text,
+    check_fps,
+    check_image_size,
+    check_output_dir,
+    staged_directory,
+    write_png,
+)
 from omnire.command_api import CameraPath, Mp4Writer, file_path, interpolated_path, recorded_path
 from omnire_sim.edits import CameraSpec, Scenario
 from omnire_sim.engine import Simulation
-from omnire_sim.scenario import load_scenario
+from omnire_sim.scenario import check_against_scene, load_scenario
 
 
 @dataclasses.dataclass
@@ -62,22 +72,24 @@ class SimArgs:
     """Write PNG frames per camera (--no-frames: videos only; so does [output] frames = false)."""
     max_frames: int = 0
     """Render only the first N frames of the camera path (0 = all), e.g. for a preview."""
+    frame_cap: int = DEFAULT_FRAME_CAP
+    """Refuse camera paths of more frames than this (a guard against runaway requests; raise it for long paths)."""
     progress: bool = True
     """Show a progress bar."""
 
 
 def build_path(scene, spec: CameraSpec, scenario: Scenario, cameras: tuple[str, ...] = (),
-               size: Optional[tuple[int, int]] = None) -> CameraPath:
+               size: Optional[tuple[int, int]] = None, frame_cap: int = DEFAULT_FRAME_CAP) -> CameraPath:
     """The scenario's camera path; errors name the [camera] table's line and field."""
     w = spec.where
     names = cameras or spec.cameras or None
     try:
         if spec.path == "recorded":
-            path = recorded_path(scene, names, spec.frames, spec.fps)
+            path = recorded_path(scene, names, spec.frames, spec.fps, frame_cap)
         elif spec.path == "interpolated":
-            path = interpolated_path(scene, spec.fps, names, spec.start, spec.end)
+            path = interpolated_path(scene, spec.fps, names, spec.start, spec.end, frame_cap)
         else:
-            path = file_path(scene, scenario.resolve_path(spec.file), names, spec.fps)
+            path = file_path(scene, scenario.resolve_path(spec.file), names, spec.fps, frame_cap)
     except UserError as exc:
         field = {"recorded": "frames", "interpolated": "end", "file": "file"}[spec.path]
         raise w.error(field if field in dict(w.field_lines) else "path", str(exc)) from None
@@ -96,17 +108,16 @@ def build_path(scene, spec: CameraSpec, scenario: Scenario, cameras: tuple[str, 
     return path
 
 
+SIM_TOOL = "omnire sim"
+SIM_KINDS = (".png", ".mp4", ".json")
+"""What omnire sim writes into its output directory (what --overwrite may replace)."""
+
+
 def check_output(output: Path, run_dir: Path, overwrite: bool) -> None:
-    """Refuse an existing output (unless ``overwrite``) and any output that is, holds or
-    lies inside the run directory."""
-    out, run = output.resolve(), run_dir.resolve()
-    if out == run or run.is_relative_to(out) or out.is_relative_to(run):
-        raise ConfigError(f"--output {output}: must lie outside the run directory {run_dir} (nothing is written "
-                          "into a run)")
-    if output.exists() and not overwrite:
-        raise ConfigError(f"--output {output}: already exists; choose another directory or pass --overwrite")
-    if output.exists() and not output.is_dir():
-        raise ConfigError(f"--output {output}: exists and is not a directory")
+    """Refuse an output that is, holds or lies inside the run directory or its dataset, and an
+    existing one unless ``overwrite`` and it is omnire sim's own (omnire/io/outputs.py)."""
+    check_output_dir(output, SIM_TOOL, overwrite=overwrite, kinds=SIM_KINDS,
+                     protect=(run_dir, RunDirectory(run_dir).data_path()))
 
 
 def _summary(sim: Simulation) -> list[dict]:
@@ -133,15 +144,20 @@ def run_sim(args: SimArgs, plugins, argv: Optional[list[str]] = None) -> Path:
     scenario = load_scenario(args.scenario)
     if (args.width is None) != (args.height is None):
         raise ConfigError("--width and --height: give both or neither")
-    if args.fps is not None and not args.fps > 0:
-        raise ConfigError(f"--fps {args.fps}: must be > 0")
+    if args.width is not None:
+        check_image_size(args.width, args.height, "--width/--height")
+    if args.fps is not None:
+        check_fps(args.fps, "--fps")
     if args.max_frames < 0:
         raise ConfigError(f"--max-frames {args.max_frames}: must be >= 0")
+    if args.frame_cap < 1:
+        raise ConfigError(f"--frame-cap {args.frame_cap}: must be >= 1")
     check_output(args.output, args.run_dir, args.overwrite)
     recon = Reconstruction.from_run(args.run_dir, plugins, args.checkpoint)
+    check_against_scene(scenario, recon.scene)
     sim = Simulation(recon, scenario, plugins)
-    size = (args.width, args.height) if args.width else None
-    path = build_path(recon.scene, scenario.camera, scenario, args.cameras, size)
+    size = (args.width, args.height) if args.width is not None else None
+    path = build_path(recon.scene, scenario.camera, scenario, args.cameras, size, args.frame_cap)
     n_frames = len(path) if args.max_frames == 0 else min(args.max_frames, len(path))
     want = dataclasses.replace(scenario.output, depth=args.depth or scenario.output.depth,
                                alpha=args.alpha or scenario.output.alpha, video=args.video and scenario.output.video,
@@ -151,15 +167,10 @@ def run_sim(args: SimArgs, plugins, argv: Optional[list[str]] = None) -> Path:
     fps = args.fps or want.fps or path.fps
 
     output = args.output
-    output.parent.mkdir(parents=True, exist_ok=True)
-    staging = output.parent / f".{output.name}.partial-{os.getpid()}"
-    if staging.exists():
-        shutil.rmtree(staging)
-    staging.mkdir()
     console = output_console(stderr=True)
     frames_meta = []
     t_render = 0.0
-    try:
+    with staged_directory(output, SIM_TOOL) as staging:
         with contextlib.ExitStack() as stack, torch.no_grad():
             videos = {}
             if want.video:
@@ -219,25 +230,9 @@ def run_sim(args: SimArgs, plugins, argv: Optional[list[str]] = None) -> Path:
             "render_fps": round(n_frames * len(path.names) / t_render, 3) if t_render > 0 else None,
         }
         atomic_write_text(staging / "manifest.json", json.dumps(manifest, indent=1) + "\n")
-        _move_into_place(staging, output)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     console.print(f"wrote {n_frames} frame(s) x {len(path.names)} camera(s) to {output} "
                   f"({manifest['render_fps']} images/s rendered)")
     return output
-
-
-def _move_into_place(staging: Path, output: Path) -> None:
-    """Rename the finished staging directory to ``output``; an existing output (allowed by
-    --overwrite) is moved aside first and deleted only after the rename."""
-    old = None
-    if output.exists():
-        old = output.parent / f".{output.name}.old-{os.getpid()}"
-        os.replace(output, old)
-    os.replace(staging, output)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 def main(argv: list[str], plugins) -> int:

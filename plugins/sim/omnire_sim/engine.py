@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import zipfile
 from pathlib import Path
 from typing import Optional
 
@@ -28,6 +29,8 @@ import numpy as np
 import torch
 
 from omnire.api import (
+    MAX_FPS,
+    MAX_MOTION_FRAMES,
     ActorNode,
     ActorState,
     Camera,
@@ -36,6 +39,7 @@ from omnire.api import (
     UserError,
     axis_angle_to_rotmat,
     bracket,
+    check_npz_rows,
     interpolate_poses,
     interpolate_rotations,
     rot_z,
@@ -183,8 +187,11 @@ def load_body_sequence(path: Path, motion: Motion, where: Where) -> _BodySequenc
         raise where.error("motion", f"{path}: body-pose sequence file not found")
     try:
         with np.load(path, allow_pickle=False) as data:
+            check_npz_rows(data, MAX_MOTION_FRAMES, str(path), "use a shorter sequence")
             arrays = {k: np.asarray(data[k]) for k in data.files}
-    except (OSError, ValueError) as exc:
+    except UserError as exc:
+        raise where.error("motion", str(exc)) from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise where.error("motion", f"{path}: cannot read the npz ({exc})") from None
     if "body_pose" in arrays:
         aa = arrays["body_pose"].astype(np.float64)
@@ -208,10 +215,14 @@ def load_body_sequence(path: Path, motion: Motion, where: Where) -> _BodySequenc
     fps = motion.fps
     for key in ("fps", "mocap_framerate"):
         if fps is None and key in arrays:
-            fps = float(arrays[key])
+            value = arrays[key]
+            if value.size != 1 or value.dtype.kind not in "iuf":
+                raise where.error("motion", f"{path}: '{key}' must be one number (frames per second), got a "
+                                            f"{value.dtype} array of shape {value.shape}")
+            fps = float(value.reshape(()))
     fps = 30.0 if fps is None else fps
-    if not fps > 0:
-        raise where.error("motion", f"{path}: frame rate {fps} must be > 0")
+    if not (math.isfinite(fps) and 0 < fps <= MAX_FPS):
+        raise where.error("motion", f"{path}: frame rate {fps} must be in (0, {MAX_FPS:g}]")
     return _BodySequence(axis_angle_to_rotmat(aa), fps, motion.loop)
 
 

@@ -1,4 +1,4 @@
-"""Scenario files (TOML, read with the standard library's ``tomllib``) -> :class:`Scenario`.
+"""Scenario files (TOML, read by the core reader omnire/io/documents.py) -> :class:`Scenario`.
 
 Every value is checked for its type and range; an error names the file, the line, the table
 (``[[actor]] #2``) and the field. docs/simulation.md describes the format; in short::
@@ -35,12 +35,21 @@ Every value is checked for its type and range; an error names the file, the line
 from __future__ import annotations
 
 import math
-import re
-import tomllib
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from omnire.api import MissingFileError
+import numpy as np
+
+from omnire.api import (
+    MAX_FPS,
+    MAX_IMAGE_SIDE,
+    ConfigError,
+    TomlDocument,
+    check_offset,
+    check_positions,
+    parse_toml,
+    read_text,
+)
 from omnire_sim.edits import (
     ActorEdit,
     CameraSpec,
@@ -57,53 +66,14 @@ from omnire_sim.edits import (
     Where,
 )
 
-_HEADER = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_.\-\" ]+?)\s*\]\]?\s*(#.*)?$")
-_KEY = re.compile(r"^\s*([A-Za-z0-9_\-]+)\s*=")
-
-
 class _Lines:
-    """Line numbers of tables and their keys in a TOML text (tomllib keeps none): for each
-    table occurrence (name, index) its header line and the line of each top-level key."""
+    """Where each table and key of a scenario was written (from the core TOML reader)."""
 
-    def __init__(self, text: str) -> None:
-        self.tables: dict[tuple[str, int], tuple[int, dict[str, int]]] = {("", 0): (1, {})}
-        counts: dict[str, int] = {}
-        current = ("", 0)
-        depth = 0  # open brackets of a multi-line value: its lines hold no keys
-        for number, line in enumerate(text.splitlines(), start=1):
-            code = _strip_comment(line)
-            if depth == 0:
-                m = _HEADER.match(code)
-                if m and not _KEY.match(code):
-                    name = m.group(2).replace('"', "").replace(" ", "")
-                    index = counts.get(name, 0) if m.group(1) == "[[" else 0
-                    counts[name] = index + 1
-                    current = (name, index)
-                    self.tables[current] = (number, {})
-                    continue
-                k = _KEY.match(code)
-                if k:
-                    self.tables[current][1].setdefault(k.group(1), number)
-            depth = max(0, depth + code.count("[") + code.count("{") - code.count("]") - code.count("}"))
+    def __init__(self, doc: TomlDocument) -> None:
+        self.doc = doc
 
     def where(self, source: str, name: str, index: int, label: str) -> Where:
-        line, keys = self.tables.get((name, index), (None, {}))
-        return Where(source, label, line, tuple(keys.items()))
-
-
-def _strip_comment(line: str) -> str:
-    """The line without a trailing comment (ignoring '#' inside strings)."""
-    out, quote = [], None
-    for ch in line:
-        if quote:
-            if ch == quote:
-                quote = None
-        elif ch in "\"'":
-            quote = ch
-        elif ch == "#":
-            break
-        out.append(ch)
-    return "".join(out)
+        return Where(source, label, self.doc.line(name, index), tuple(self.doc.key_lines(name, index).items()))
 
 
 # ---------------------------------------------------------------------- field readers
@@ -186,6 +156,14 @@ def _non_negative(v: float) -> Optional[str]:
     return None if v >= 0 else "must be >= 0"
 
 
+def _fps(v: float) -> Optional[str]:
+    return None if 0 < v <= MAX_FPS else f"must be a frame rate in (0, {MAX_FPS:g}]"
+
+
+def _side(v: int) -> Optional[str]:
+    return None if 1 <= v <= MAX_IMAGE_SIDE else f"must be 1..{MAX_IMAGE_SIDE} pixels"
+
+
 # ---------------------------------------------------------------------- sections
 _MOVE_KEYS = {"offset", "offset_world", "yaw", "trajectory", "path_speed", "path_start", "hold", "speed", "stop_at",
               "brake", "resume_at", "motion", "gait_cycle", "motion_fps", "motion_loop"}
@@ -238,7 +216,7 @@ def _moves(t: _Table, base_dir: Path) -> tuple[Placement, Optional[Trajectory], 
     if t.has("motion"):
         name = t.require("motion", "str")
         extra = dict(cycle=t.get("gait_cycle", "number", 1.3, _positive),
-                     fps=t.get("motion_fps", "number", None, _positive), loop=t.get("motion_loop", "bool", True))
+                     fps=t.get("motion_fps", "number", None, _fps), loop=t.get("motion_loop", "bool", True))
         if name in ("gait", "recorded"):
             motion = Motion(name, **extra)
         else:
@@ -285,7 +263,7 @@ def _camera(data: Any, lines: _Lines, source: str) -> CameraSpec:
         raise where.error("frames", "only applies to the recorded path")
     if path == "recorded" and (t.has("start") or t.has("end")):
         raise where.error("start" if t.has("start") else "end", "the recorded path takes 'frames', not a time window")
-    width, height = t.get("width", "int", None, _positive), t.get("height", "int", None, _positive)
+    width, height = t.get("width", "int", None, _side), t.get("height", "int", None, _side)
     if (width is None) != (height is None):
         raise where.error("width" if width is None else "height", "give both 'width' and 'height'")
     if t.has("scene_time") and t.has("scene_speed"):
@@ -310,7 +288,7 @@ def _camera(data: Any, lines: _Lines, source: str) -> CameraSpec:
             raise sw.error("end", f"{end} s is before start = {start} s")
         shifts.append(LaneShift(offset, start, end, sw))
     file = t.get("file", "str")
-    return CameraSpec(path, t.get("fps", "number", None, _positive), t.get("start", "seconds", 0.0),
+    return CameraSpec(path, t.get("fps", "number", None, _fps), t.get("start", "seconds", 0.0),
                       t.get("end", "seconds"), t.get("frames", "int_list"), t.get("cameras", "str_list", ()),
                       Path(file) if file else None, width, height, t.get("scene_time", "seconds"),
                       t.get("scene_speed", "number", None, _non_negative), tuple(shifts), where)
@@ -323,18 +301,15 @@ def _output(data: Any, lines: _Lines, source: str) -> OutputSpec:
     t = _Table(data, where, {"frames", "video", "fps", "crf", "depth", "alpha"})
     crf = t.get("crf", "int", 18, lambda v: None if 0 <= v <= 51 else "x264 crf must be in 0..51")
     return OutputSpec(t.get("frames", "bool", True), t.get("video", "bool", True),
-                      t.get("fps", "number", None, _positive), crf, t.get("depth", "bool", False),
+                      t.get("fps", "number", None, _fps), crf, t.get("depth", "bool", False),
                       t.get("alpha", "bool", False))
 
 
 def parse_scenario(text: str, source: str = "<scenario>", base_dir: Path = Path(".")) -> Scenario:
     """Parse and check a scenario written as TOML ``text`` (``source`` names it in errors;
     relative paths in it are resolved against ``base_dir``)."""
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
-    lines = _Lines(text)
+    doc = parse_toml(text, source, ScenarioError)
+    data, lines = doc.data, _Lines(doc)
     top = _Table(data, lines.where(source, "", 0, ""), {"camera", "output", "actor", "insert"})
     del top
     actors, inserts = [], []
@@ -354,10 +329,27 @@ def load_scenario(path: Path) -> Scenario:
     """Read a scenario file (see the module docstring); relative paths inside it are taken
     relative to its directory."""
     path = Path(path)
-    if not path.is_file():
-        raise MissingFileError(f"{path}: scenario file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ScenarioError(f"{path}: cannot read the scenario ({exc})") from None
-    return parse_scenario(text, str(path), path.parent.resolve())
+    return parse_scenario(read_text(path, "scenario file", ScenarioError), str(path), path.parent.resolve())
+
+
+def check_against_scene(scenario: Scenario, scene) -> None:
+    """Refuse positions and offsets that leave the scene: trajectory waypoints outside the
+    scene's extent plus :data:`omnire.limits.POSITION_MARGIN_M`, placement offsets and lane
+    shifts longer than that extent plus the margin. Run before any rendering; the error
+    names the file, line, table and field."""
+    for item in (*scenario.actors, *scenario.inserts):
+        w = item.where
+        try:
+            check_offset(item.placement.offset, scene, w.of("offset"))
+            check_offset(item.placement.offset_world, scene, w.of("offset_world"))
+            if item.trajectory is not None:
+                for k, wp in enumerate(item.trajectory.waypoints, start=1):
+                    point = [wp.x, wp.y] + ([wp.z] if wp.z is not None else [])
+                    check_positions(np.array([point]), scene, w.of(f"trajectory[{k}]"))
+        except ConfigError as exc:
+            raise ScenarioError(str(exc)) from None
+    for shift in scenario.camera.lane_shifts:
+        try:
+            check_offset(shift.offset, scene, shift.where.of("offset"))
+        except ConfigError as exc:
+            raise ScenarioError(str(exc)) from None

@@ -109,10 +109,17 @@ def test_existing_output_refused_unless_overwrite(demo_run, plugins, tmp_path):
     with pytest.raises(UserError, match="already exists"):
         run_sim(SimArgs(demo_run, scenario, out, progress=False), plugins)
     assert (out / "keep.txt").is_file()
-    with pytest.raises(UserError, match="outside the run directory"):
+    with pytest.raises(UserError, match="lies inside"):
         run_sim(SimArgs(demo_run, scenario, demo_run / "sim", progress=False), plugins)
+    # --overwrite replaces only omnire sim's own output (omnire/io/outputs.py)
+    with pytest.raises(UserError, match="not written by omnire sim"):
+        run_sim(SimArgs(demo_run, scenario, out, overwrite=True, progress=False, video=False), plugins)
+    assert (out / "keep.txt").read_text() == "mine"
+    (out / "keep.txt").unlink()
     run_sim(SimArgs(demo_run, scenario, out, overwrite=True, progress=False, video=False), plugins)
-    assert not (out / "keep.txt").exists() and (out / "front_camera" / "00000.png").is_file()
+    assert (out / "front_camera" / "00000.png").is_file()
+    run_sim(SimArgs(demo_run, scenario, out, overwrite=True, progress=False, video=False), plugins)
+    assert (out / "front_camera" / "00000.png").is_file()
 
 
 @pytest.mark.parametrize("kind", ["unknown track", "time outside the log", "malformed trajectory", "no checkpoint",
