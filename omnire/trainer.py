@@ -261,7 +261,8 @@ class Trainer:
         node = nodes[node_name]
         before = node.num_gaussians
         if keep.dtype != torch.bool or tuple(keep.shape) != (before,):
-            raise ValueError(f"keep: {keep.dtype} of shape {tuple(keep.shape)}, expected torch.bool of shape ({before},)")
+            raise ValueError(f"keep: {keep.dtype} of shape {tuple(keep.shape)}, "
+                             f"expected torch.bool of shape ({before},)")
         self.optimizers.replace_gaussian_rows(node_name, node, lambda k, t: t[keep], lambda k, s: s[keep])
         self.strategy.rows_changed(node_name, node, self.optimizers)
         return before, node.num_gaussians
