@@ -37,9 +37,11 @@ from omnire.data.scene import SceneData, SceneTime, View
 from omnire.model import RenderResult, SceneModel, enabled_node_specs
 from omnire.nodes.actors import ActorNode, ActorState
 from omnire.nodes.base import EnvironmentNode, Node, NodeOutput
-from omnire.rasterization import describe_paths, select_backend
+from omnire.gaussians import Gaussians
+from omnire.rasterization import Rasterizer, describe_paths, select_backend
 from omnire.rundir import RunDirectory, RunInfo, find_checkpoint
 from omnire.runconfig import TrainConfig, parse_train_args
+from omnire.strategy import NodeSlice
 
 log = logging.getLogger("omnire.runtime")
 
@@ -244,6 +246,11 @@ class Reconstruction:
         """The nodes drawing actors (boxes under poses), by name."""
         return {n: m for n, m in self.model.nodes.items() if isinstance(m, ActorNode)}
 
+    def gaussian_nodes(self) -> dict[str, Node]:
+        """The nodes drawing Gaussians (every node but the environment ones), by name, in
+        drawing order."""
+        return self.model.gaussian_nodes()
+
     def environment_nodes(self) -> dict[str, EnvironmentNode]:
         """The nodes composited under the Gaussians (e.g. the sky), by name."""
         return self.model.environment_nodes()
@@ -260,6 +267,11 @@ class Reconstruction:
     def scene_radius(self) -> float:
         """The scene's scale in metres (:func:`omnire.model.scene_radius`)."""
         return self.model.scene_radius
+
+    @property
+    def rasterizer(self) -> Rasterizer:
+        """The rasterizer backend this scene renders with (omnire/rasterization.py's contract)."""
+        return self.model.rasterizer
 
     @property
     def rasterizer_name(self) -> str:
@@ -334,6 +346,17 @@ class Reconstruction:
         for actor in edits.inserted() if edits is not None else ():
             if not actor.removed and (only is None or actor.key in only):
                 yield from _edited(actor, f"insert:{actor.key}", seconds, time, inserted=True)
+
+    def gather(self, camera: Optional[Camera], time: SceneTime
+               ) -> tuple[Optional[Gaussians], list[NodeSlice], dict[str, NodeOutput]]:
+        """The recorded scene's world-space Gaussians at ``time`` as a render draws them
+        (:meth:`~omnire.model.SceneModel.gather`): ``(g, slices, outputs)`` with ``g`` the N
+        Gaussians of every Gaussian node concatenated (culled to ``camera`` when the method
+        culls and a camera is given, placed as ``camera`` sees them at its refined pose), or
+        None when nothing is present; ``slices`` one :class:`~omnire.strategy.NodeSlice` per
+        node, rows ``start:end`` of ``g`` coming from that node's rows ``rows`` ((end - start,)
+        long, or None for its first end - start rows); ``outputs`` each node's output."""
+        return self.model.gather(camera, time)
 
     def node_outputs(self, drawn: Iterable[Drawn], camera: Optional[Camera], time: SceneTime,
                      step: Optional[int] = None) -> list[tuple[str, Optional[NodeOutput]]]:

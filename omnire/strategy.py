@@ -117,15 +117,22 @@ class AbsGradStrategy:
                 if step < self.refine_stop:
                     report["grown"] += self._grow(name, node, optimizers)
                 report["pruned"] += self._prune(name, node, optimizers, step)
-                order = node.row_order()  # e.g. actor nodes keep each instance's rows contiguous
-                if order is not None:
-                    optimizers.replace_gaussian_rows(name, node, lambda k, t: t[order], lambda k, s: s[order])
-                self.state.pop(name, None)
+                self.rows_changed(name, node, optimizers)
         if c.reset_every > 0 and 0 < step < self.refine_stop and step % c.reset_every == 0:
             for name, node in nodes.items():
                 if node.num_gaussians:
                     self._reset_opacity(name, node, optimizers)
         return report
+
+    def rows_changed(self, name: str, node: Node, optimizers: Optimizers) -> None:
+        """After rows of node ``name`` were added or removed: put its rows back in the order
+        the node relies on (:meth:`~omnire.nodes.base.Node.row_order`, e.g. actor nodes keep
+        each instance's rows contiguous), tensors and Adam moments alike, and drop its
+        densification statistics, which described the old rows."""
+        order = node.row_order()
+        if order is not None:
+            optimizers.replace_gaussian_rows(name, node, lambda k, t: t[order], lambda k, s: s[order])
+        self.state.pop(name, None)
 
     @torch.no_grad()
     def _grow(self, name: str, node: Node, optimizers: Optimizers) -> int:

@@ -249,6 +249,24 @@ class Trainer:
         self._sh_bands_degree = degree
         return changed
 
+    @torch.no_grad()
+    def keep_gaussian_rows(self, node_name: str, keep: torch.Tensor) -> tuple[int, int]:
+        """Keep only the Gaussians ``keep`` ((N,) bool over the rows of Gaussian node
+        ``node_name``) and drop the rest: parameters, buffers and Adam moments are cut
+        together, the node's row order is restored and its densification statistics are
+        dropped, so training continues from the result. Returns (count before, count after)."""
+        nodes = self.recon.gaussian_nodes()
+        if node_name not in nodes:
+            raise ValueError(f"node {node_name!r}: expected one of the Gaussian nodes {sorted(nodes)}")
+        node = nodes[node_name]
+        before = node.num_gaussians
+        if keep.dtype != torch.bool or tuple(keep.shape) != (before,):
+            raise ValueError(f"keep: {keep.dtype} of shape {tuple(keep.shape)}, "
+                             f"expected torch.bool of shape ({before},)")
+        self.optimizers.replace_gaussian_rows(node_name, node, lambda k, t: t[keep], lambda k, s: s[keep])
+        self.strategy.rows_changed(node_name, node, self.optimizers)
+        return before, node.num_gaussians
+
     # ------------------------------------------------------------------ training
     def loss_context(self, view: View, result, factor: int = 1) -> LossContext:
         """What the losses compare ``result`` (rendered at 1 / ``factor`` resolution) with."""

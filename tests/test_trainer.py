@@ -61,3 +61,33 @@ def test_non_finite_parameters_are_never_checkpointed(tiny_scene, tmp_path):
     with pytest.raises(TrainingError, match="refusing to write a checkpoint"):
         trainer.save_checkpoint()
     assert not (trainer.run_dir / "checkpoints").exists()
+
+
+def test_keep_gaussian_rows_cuts_parameters_moments_and_statistics_together(tiny_scene, tmp_path):
+    trainer = make_trainer(tiny_scene, tmp_path, steps=20)
+    for _ in range(3):  # Adam moments and densification statistics exist (refinement starts at 10)
+        trainer.train_step()
+    node = trainer.recon.gaussian_nodes()["background"]
+    n = node.num_gaussians
+    assert "background" in trainer.strategy.state
+    keep = torch.rand(n, generator=torch.Generator().manual_seed(0)) < 0.4
+    params = {k: p.detach().clone() for k, p in node.gaussian_params.items()}
+    moments = {k: {s: v.clone() for s, v in trainer.optimizers.optimizers["background"].state[p].items()}
+               for k, p in node.gaussian_params.items()}
+
+    assert trainer.keep_gaussian_rows("background", keep) == (n, int(keep.sum()))
+    for k, p in node.gaussian_params.items():  # the obvious selection, row by row
+        rows = [i for i in range(n) if keep[i]]
+        assert torch.equal(p.detach(), params[k][rows]), k
+        state = trainer.optimizers.optimizers["background"].state[p]
+        for s, old in moments[k].items():
+            if s != "step":
+                assert torch.equal(state[s], old[rows]), (k, s)
+    assert "background" not in trainer.strategy.state
+    trainer.train_step()  # training continues from the cut rows
+    assert all(torch.isfinite(p).all() for p in node.gaussian_params.values())
+
+    with pytest.raises(ValueError, match="expected torch.bool of shape"):
+        trainer.keep_gaussian_rows("background", torch.ones(3, dtype=torch.bool))
+    with pytest.raises(ValueError, match="expected one of the Gaussian nodes"):
+        trainer.keep_gaussian_rows("sky", keep)

@@ -45,14 +45,13 @@ def node_contributions(recon, views, progress: Optional[Callable[[], None]] = No
     moments; actors count in the views where they are present, the only ones that draw them).
     The Gaussians are those the scene graph renders at each view (posed actors, deformed
     bodies, the camera's refined pose), culled to the view as a render culls them."""
-    model = recon.model
     totals = {name: torch.zeros(node.num_gaussians, dtype=torch.float64, device=recon.device)
-              for name, node in model.gaussian_nodes().items()}
+              for name, node in recon.gaussian_nodes().items()}
     for view in views:
         camera = recon.camera(view)
-        g, slices, _ = model.gather(camera, recon.time(view.frame))
+        g, slices, _ = recon.gather(camera, recon.time(view.frame))
         if g is not None and len(g):
-            w = view_weights(model.rasterizer, g.means, g.quats, g.activated_scales, g.activated_opacities, camera)
+            w = view_weights(recon.rasterizer, g.means, g.quats, g.activated_scales, g.activated_opacities, camera)
             for sl in slices:
                 part = w[sl.start:sl.end].to(torch.float64)
                 if sl.rows is None:

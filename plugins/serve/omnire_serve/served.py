@@ -23,7 +23,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from omnire.api import ActorNode, Camera, Reconstruction, UserError
+from omnire.api import Camera, Reconstruction, UserError
 from omnire.command_api import rig_poses
 from omnire_serve.checks import Limits, image_size, pose_matrix
 from omnire_serve.corridor import Corridor, build_corridor
@@ -79,7 +79,7 @@ class ServedScene:
         allc = np.concatenate(where).astype(np.float64)
         self.extent = (allc.min(0), allc.max(0))
         self.tracks = {t.track_id: t for t in scene.tracks}
-        self.actor_ids = [t for node in recon.model.nodes.values() if isinstance(node, ActorNode) for t in node.track_ids]
+        self.actor_ids = [t for node in recon.actor_nodes().values() for t in node.track_ids]
         self.render_lock = threading.Lock()
         self._base_sim = Simulation(recon, self.base, plugins)
         self._corridor: Optional[Corridor] = None
@@ -253,9 +253,7 @@ class Episode:
         edited = {(a.node_name, a.instance) for a in sim.actors if not a.inserted}
         out = []
         with torch.no_grad():
-            for name, node in recon.model.nodes.items():
-                if not isinstance(node, ActorNode):
-                    continue
+            for name, node in recon.actor_nodes().items():
                 state = node.state_at(time)
                 for k, i in enumerate(state.ids.tolist()):
                     if (name, i) in edited:

@@ -261,7 +261,7 @@ class Viewer:
     def _info_text(self, title: str, extra: str = "") -> str:
         sc = self.scene
         text = (f"**{title}**  \n{sc.scene.name}: {sc.num_frames} frames, {len(sc.scene.cameras)} cameras, "
-                f"{sc.model.num_gaussians():,} Gaussians, step {sc.recon.step}")
+                f"{sc.recon.num_gaussians():,} Gaussians, step {sc.recon.step}")
         if sc.base.actors or sc.base.inserts:
             text += (f"  \nscenario {sc.base.source}: {len(sc.base.actors)} actor edit(s), "
                      f"{len(sc.base.inserts)} inserted actor(s)")
@@ -375,7 +375,7 @@ class Viewer:
         scale = min(1.0, (max_width or W) / W, MAX_RENDER_WIDTH / H)
         if scale < 1.0:
             W, H = max(1, round(W * scale)), max(1, round(H * scale))
-        return camera_from_view(cam.position, cam.wxyz, float(cam.fov), W, H, self.scene.model.device)
+        return camera_from_view(cam.position, cam.wxyz, float(cam.fov), W, H, self.scene.recon.device)
 
     def render_for_client(self, client) -> Optional[np.ndarray]:
         """Render ``client``'s view on the server and show it in the panel; returns (H, W, 3),
@@ -399,7 +399,7 @@ class Viewer:
         self.gui_render_image.image = image
         self.gui_render_image.visible = True
         self.gui_render_note.content = (f"{camera.width}x{camera.height} at frame {self.frame:.1f} in {dt:.2f} s "
-                                        f"({self.scene.model.rasterizer.name} rasterizer)")
+                                        f"({self.scene.recon.rasterizer_name} rasterizer)")
         return rgb
 
     def recolour(self, client) -> None:

@@ -140,9 +140,6 @@ class ViewerScene:
         with self.lock:
             self.recon = recon
             self.scene = recon.scene
-            # app.py still reads model.num_gaussians / device / rasterizer.name through this (its
-            # owner moves it to recon.num_gaussians(), recon.device, recon.rasterizer_name)
-            self.model = recon.model
             self._cache.clear()
             self._sim = None
             base = Simulation(recon, self.base, self.plugins, assets=self._assets)  # checks the scenario

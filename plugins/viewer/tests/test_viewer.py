@@ -212,7 +212,7 @@ def assert_placed_like_the_sim(viewer, sim, frame):
     t = time_.seconds - float(recon.scene.frame_timestamps[0])
     expected = {}
     edited = {(a.node_name, a.instance): a for a in sim.actors if not a.inserted}
-    for name, node in recon.model.nodes.items():
+    for name, node in recon.nodes.items():
         if name not in ("rigid", "smpl"):
             continue
         st = node.state_at(time_)
