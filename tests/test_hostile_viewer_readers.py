@@ -365,10 +365,11 @@ def test_view_deeply_nested_inputs(tiny_run, tmp_path, capsys):
 @pytest.fixture(scope="module")
 def nuscenes_scene(tmp_path_factory):
     pytest.importorskip("omnire_nuscenes")
+    from omnire.plugins import load_plugins
     from omnire_synthetic.cli import main as synth_main
 
     scene = tmp_path_factory.mktemp("nus") / "tiny_nuscenes"
-    assert synth_main(["urban", str(scene), "--tiny", "--format", "nuscenes"]) == 0
+    assert synth_main(["urban", str(scene), "--tiny", "--format", "nuscenes"], load_plugins()) == 0
     return scene
 
 

@@ -175,10 +175,11 @@ def test_plugin_listed():
 def test_synth_format_and_train_omnire(tmp_path):
     """The real CLI: ``omnire synth --format nuplan``, then ``omnire train omnire nuplan``
     trains a few steps and evaluates the held-out frames."""
+    from omnire.plugins import load_plugins
     from omnire_synthetic.cli import main as synth_main
 
     scene = tmp_path / "tiny_nuplan"
-    assert synth_main(["urban", str(scene), "--tiny", "--format", "nuplan"]) == 0
+    assert synth_main(["urban", str(scene), "--tiny", "--format", "nuplan"], load_plugins()) == 0
     assert database_path(scene).is_file() and not (scene / "images").exists()
     env = dict(os.environ, OMP_NUM_THREADS="1", COLUMNS="200")
     runs = tmp_path / "runs"
