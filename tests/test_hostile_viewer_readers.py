@@ -353,7 +353,7 @@ def test_view_flags(case, tiny_run, capsys):
 def test_view_deeply_nested_inputs(tiny_run, tmp_path, capsys):
     scenario = _nested_toml(tmp_path / "deep.toml")
     run_case("view scenario nested 100k deep", ["view", str(tiny_run), "--port", "0", "--scenario", str(scenario)],
-             capsys, [scenario, tiny_run], needles=("deep.toml", "nested too deeply"), surface="view")
+             capsys, [scenario, tiny_run], needles=("deep.toml", "nested more than 64 levels deep"), surface="view")
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
     (run / "run.json").write_text('{"a": ' + "[" * DEEP + "]" * DEEP + "}")
