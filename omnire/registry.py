@@ -241,17 +241,33 @@ class RegistryKind:
     label: str
     spec: type
     hook: str
+    registers: str
+    """What the hook registers (its docstring)."""
 
 
 REGISTRY_KINDS: tuple[RegistryKind, ...] = (
-    RegistryKind("dataparsers", "dataparser", DataparserSpec, "omnire_register_dataparsers"),
-    RegistryKind("node_types", "node type", NodeTypeSpec, "omnire_register_node_types"),
-    RegistryKind("rasterizers", "rasterizer", RasterizerSpec, "omnire_register_rasterizers"),
-    RegistryKind("losses", "loss", LossSpec, "omnire_register_losses"),
-    RegistryKind("methods", "method", MethodSpec, "omnire_register_methods"),
-    RegistryKind("commands", "command", CommandSpec, "omnire_register_commands"),
-    RegistryKind("pose_estimators", "pose estimator", PoseEstimatorSpec, "omnire_register_pose_estimators"),
-    RegistryKind("scene_writers", "scene writer", SceneWriterSpec, "omnire_register_scene_writers"),
-    RegistryKind("train_observers", "training observer", TrainObserverSpec, "omnire_register_train_observers"),
+    RegistryKind("dataparsers", "dataparser", DataparserSpec, "omnire_register_dataparsers", "dataset readers"),
+    RegistryKind("node_types", "node type", NodeTypeSpec, "omnire_register_node_types", "scene-graph node types"),
+    RegistryKind("rasterizers", "rasterizer", RasterizerSpec, "omnire_register_rasterizers", "rasterizer backends"),
+    RegistryKind("losses", "loss", LossSpec, "omnire_register_losses", "loss terms"),
+    RegistryKind("methods", "method", MethodSpec, "omnire_register_methods",
+                 "methods (named presets of node types, losses and settings)"),
+    RegistryKind("commands", "command", CommandSpec, "omnire_register_commands",
+                 "``omnire`` sub-commands (``bench *`` commands included)"),
+    RegistryKind("pose_estimators", "pose estimator", PoseEstimatorSpec, "omnire_register_pose_estimators",
+                 "per-camera human pose estimators (used by the SMPL node type's scene preparation)"),
+    RegistryKind("scene_writers", "scene writer", SceneWriterSpec, "omnire_register_scene_writers",
+                 "writers of a dataset's on-disk layout (``omnire synth --format``)"),
+    RegistryKind("train_observers", "training observer", TrainObserverSpec, "omnire_register_train_observers",
+                 "training observers (``--trainer.observers``), e.g. a live viewer"),
 )
 """Every registry kind, in the order ``omnire plugins`` lists them."""
+
+
+def kind_of(spec: Any) -> RegistryKind:
+    """The registry kind a spec object belongs to (a plugin's ``SPECS`` entries are sorted by it)."""
+    for kind in REGISTRY_KINDS:
+        if isinstance(spec, kind.spec):
+            return kind
+    raise RegistryError(f"{spec!r} is not a spec; expected one of "
+                        + ", ".join(kind.spec.__name__ for kind in REGISTRY_KINDS))
