@@ -1,7 +1,7 @@
 """pluggy hook specifications: how a plugin fills the registries.
 
 A plugin is a module (found through the ``omnire`` entry-point group) holding functions
-decorated with :data:`hookimpl` whose names match the specs below. Each hook receives the
+decorated with :data:`hookimpl` named like the hooks of :class:`HookSpecs`. Each hook receives the
 registry to fill; return values are ignored. The hooks are made here from
 :data:`omnire.registry.REGISTRY_KINDS`, one ``omnire_register_<kind>(registry)`` per kind (its
 docstring says what it registers). A plugin that only declares specs may list them in a
@@ -37,7 +37,7 @@ hookimpl = pluggy.HookimplMarker(PROJECT)
 
 def _hook(kind: RegistryKind) -> Callable[[Registry[Any]], None]:
     def register(registry: Registry[Any]) -> None:
-        pass
+        ...  # a specification has no body: pluggy checks implementations against its signature
 
     register.__name__ = register.__qualname__ = kind.hook
     register.__doc__ = f"Register {kind.registers}: ``registry.register({kind.spec.__name__}(...))``."
