@@ -142,6 +142,7 @@ from omnire.rasterization import (
     SsimRasterizer,
     check_raster_inputs,
 )
+from omnire.registration import Lazy, LazyTargetError, lazy
 from omnire.registry import (
     CommandSpec,
     DataparserSpec,
@@ -160,34 +161,5 @@ from omnire.rundir import CheckpointError, RunDirectory, RunDirectoryError, flat
 from omnire.runtime import ActorEdits, Drawn, EditedActor, Reconstruction
 from omnire.trainer import Trainer
 
-__all__ = [
-    "ALPHA_THRESHOLD", "CAPABILITIES", "CATEGORIES", "CULL_SIGMAS", "DEFAULT_FRAME_CAP", "GAUSSIAN_KEYS",
-    "MAX_ALPHA", "MAX_FPS", "MAX_IMAGE_SIDE", "MAX_MOTION_FRAMES", "POSITION_MARGIN_M", "STATIONARY_THRESHOLD",
-    "TILE_SIZE", "TRANSMITTANCE_MIN", "ActorEdits", "ActorNode", "ActorPoses", "ActorState", "ActorTrack",
-    "BackgroundConfig", "BeamModel", "BoxActorConfig", "BoxActorNode", "Camera", "CameraSequence",
-    "CheckpointError", "CommandSpec", "ConfigError", "Dataparser", "DataparserConfig", "DataparserSpec",
-    "DeformationMLP", "Drawn", "EditedActor", "EnvironmentNode", "FusedTrainingRasterizer", "GaussianNode",
-    "GaussianNodeConfig", "Gaussians", "HumanPoseSequence", "ImageCache", "ImageReadError", "InferenceRasterizer",
-    "InstantiateConfig", "LidarSweeps", "LogDataparserConfig", "LossContext", "LossSpec", "MaxTrackGap",
-    "MethodConfig", "MethodSpec", "MissingFileError", "NativeExtension", "Node", "NodeConfig", "NodeContext",
-    "NodeOutput", "NodeTypeSpec", "OutputError", "ParamGroup", "Placement", "PluginLoadError", "Plugins",
-    "PluginSelection", "PoseEstimatorSpec", "RangeImage", "RasterInputError", "Rasterizer", "RasterizerSpec",
-    "RasterSettings", "Reconstruction", "Registry", "RenderOutput", "RunDirectory", "RunDirectoryError",
-    "SceneData", "SceneDataError", "SceneTime", "SceneWriterSpec", "Splats", "SsimRasterizer", "TomlDocument",
-    "TrainConfig", "Trainer", "TrainerConfig", "TrainObserverSpec", "UserError", "View", "assign_beams",
-    "atomic_write_bytes", "atomic_write_text", "axis_angle_to_rotmat", "axis_rotation", "bracket",
-    "build_error_line", "check_fps", "check_frame_count", "check_image_size", "check_location", "check_npz_rows",
-    "check_offset", "check_output_dir", "check_positions", "check_raster_inputs", "colour_from_images",
-    "estimate_azimuth_resolution", "estimate_elevations", "far_shell", "first_pose_world", "flatten_eval",
-    "frame_blend", "frame_range", "gaussian_reach", "hold_absent_poses", "holdout_split", "hookimpl", "image_size",
-    "in_frustum", "init_background_params", "init_gaussian_params", "interpolate_poses", "interpolate_rotations",
-    "interpolate_track", "invert_se3", "is_stationary", "knn_scales", "lidar_points_for_init", "load_json",
-    "load_toml", "loaded_camera", "loaded_intrinsics", "majority_label", "may_be_drawn", "nearest_index",
-    "parse_device", "parse_json", "parse_toml", "placed_output", "points_in_box", "points_in_sensor_frame",
-    "positional_encoding", "quat_multiply", "quat_to_rotmat", "quat_to_se3", "range_image", "read_image",
-    "read_text", "require_files", "resample_track", "rgb_to_sh0", "rigid", "rot_z", "rotmat_to_axis_angle",
-    "rotmat_to_quat", "row_sparse", "safe_pickle", "segment_max", "slerp_rotmats", "spherical", "ssim_map",
-    "staged_directory", "staged_files", "thin_points", "to_tensor", "track_displacement", "train_frame_bracket",
-    "transform_instances", "usable_track", "user_cache_dir", "visible_in_cameras", "voxel_downsample", "write_png",
-    "writing",
-]
+__all__ = [name for name in sorted(dir()) if not name.startswith("_")]
+"""Every name imported above (each is listed once, in its import)."""

@@ -2,11 +2,12 @@
 
 A plugin's ``omnire <name>`` command (``CommandSpec.main(argv, plugins)``) imports what it
 prints, writes and measures with from here: the console the core's commands print with,
-the MP4 writer, the camera paths of ``omnire render`` and ``omnire sim``, and the pieces of
+the MP4 writer, this process's memory, the camera paths of ``omnire render`` and ``omnire sim``, and the pieces of
 ``omnire bench train`` that other comparisons reuse (its arguments, table, plot and
 ``--methods`` entry parser). Everything else it needs (specs, the scene runtime, errors,
 atomic writes) is in :mod:`omnire.api`. docs/plugins.md lists both public modules.
 """
+from omnire.bench.memory import process_status_kib
 from omnire.bench.train import TrainBenchArgs, markdown_table, parse_entry
 from omnire.bench.train import plot as plot_train_bench
 from omnire.camerapath import CameraPath, file_path, interpolated_path, recorded_path, rig_poses
@@ -15,5 +16,6 @@ from omnire.ui import output_console
 
 __all__ = [
     "CameraPath", "Mp4Writer", "TrainBenchArgs", "VideoWriteError", "file_path", "interpolated_path", "markdown_table",
-    "output_console", "parse_entry", "plot_train_bench", "recorded_path", "rig_poses", "write_mp4",
+    "output_console", "parse_entry", "plot_train_bench", "process_status_kib", "recorded_path", "rig_poses",
+    "write_mp4",
 ]

@@ -1,10 +1,12 @@
 """pluggy hook specifications: how a plugin fills the registries.
 
 A plugin is a module (found through the ``omnire`` entry-point group) holding functions
-decorated with :data:`hookimpl` whose names match the specs below. Each hook receives the
-registry to fill; return values are ignored. The registry kinds and their hooks are listed
-once in :data:`omnire.registry.REGISTRY_KINDS`; plugin authors import everything they need
-from :mod:`omnire.api`.
+decorated with :data:`hookimpl` named like the hooks of :class:`HookSpecs`. Each hook receives the
+registry to fill; return values are ignored. The hooks are made here from
+:data:`omnire.registry.REGISTRY_KINDS`, one ``omnire_register_<kind>(registry)`` per kind (its
+docstring says what it registers). A plugin that only declares specs may list them in a
+module-level ``SPECS`` tuple instead: the loader registers each into the registry of its kind.
+Plugin authors import everything they need from :mod:`omnire.api`.
 
 Example (in ``my_plugin/plugin.py``, with ``[project.entry-points.omnire] my = "my_plugin.plugin"``)::
 
@@ -13,69 +15,38 @@ Example (in ``my_plugin/plugin.py``, with ``[project.entry-points.omnire] my = "
     @hookimpl
     def omnire_register_losses(registry):
         registry.register(LossSpec("tv", "total variation of depth", tv_loss))
+
+or, declared (callables named ``"module:attribute"`` are imported on first call)::
+
+    from omnire.api import CommandSpec, lazy
+
+    SPECS = (CommandSpec("mine", "what it does", lazy("my_plugin.cli:main")),)
 """
 from __future__ import annotations
 
+from typing import Any, Callable
+
 import pluggy
 
-from omnire.registry import (
-    CommandSpec,
-    DataparserSpec,
-    LossSpec,
-    MethodSpec,
-    NodeTypeSpec,
-    PoseEstimatorSpec,
-    RasterizerSpec,
-    Registry,
-    SceneWriterSpec,
-    TrainObserverSpec,
-)
+from omnire.registry import REGISTRY_KINDS, Registry, RegistryKind
 
 PROJECT = "omnire"
 hookspec = pluggy.HookspecMarker(PROJECT)
 hookimpl = pluggy.HookimplMarker(PROJECT)
 
 
-@hookspec
-def omnire_register_dataparsers(registry: Registry[DataparserSpec]) -> None:
-    """Register dataset readers."""
+def _hook(kind: RegistryKind) -> Callable[[Registry[Any]], None]:
+    def register(registry: Registry[Any]) -> None:
+        ...  # a specification has no body: pluggy checks implementations against its signature
+
+    register.__name__ = register.__qualname__ = kind.hook
+    register.__doc__ = f"Register {kind.registers}: ``registry.register({kind.spec.__name__}(...))``."
+    return hookspec(register)
 
 
-@hookspec
-def omnire_register_node_types(registry: Registry[NodeTypeSpec]) -> None:
-    """Register scene-graph node types."""
+class HookSpecs:
+    """The hook specifications, one per registry kind (what the plugin manager is given)."""
 
 
-@hookspec
-def omnire_register_rasterizers(registry: Registry[RasterizerSpec]) -> None:
-    """Register rasterizer backends."""
-
-
-@hookspec
-def omnire_register_losses(registry: Registry[LossSpec]) -> None:
-    """Register loss terms."""
-
-
-@hookspec
-def omnire_register_methods(registry: Registry[MethodSpec]) -> None:
-    """Register methods (named presets of node types, losses and settings)."""
-
-
-@hookspec
-def omnire_register_commands(registry: Registry[CommandSpec]) -> None:
-    """Register ``omnire`` sub-commands (``bench *`` commands included)."""
-
-
-@hookspec
-def omnire_register_pose_estimators(registry: Registry[PoseEstimatorSpec]) -> None:
-    """Register per-camera human pose estimators (used by the SMPL node type's scene preparation)."""
-
-
-@hookspec
-def omnire_register_scene_writers(registry: Registry[SceneWriterSpec]) -> None:
-    """Register writers of a dataset's on-disk layout (``omnire synth --format``)."""
-
-
-@hookspec
-def omnire_register_train_observers(registry: Registry[TrainObserverSpec]) -> None:
-    """Register training observers (``--trainer.observers``), e.g. a live viewer."""
+for _kind in REGISTRY_KINDS:
+    setattr(HookSpecs, _kind.hook, staticmethod(_hook(_kind)))

@@ -1,6 +1,7 @@
 """Plugin discovery and loading, with per-plugin error isolation.
 
-Every plugin, the built-ins included, is a module with pluggy hook implementations. External
+Every plugin, the built-ins included, is a module with pluggy hook implementations and/or a
+``SPECS`` tuple of specs registered as they are (see :mod:`omnire.hookspecs`). External
 ones are found through the ``omnire`` entry-point group. Each plugin registers into a
 staging area first; its entries are committed only when all of its hooks succeeded, so a
 plugin that fails part-way leaves nothing behind. A plugin that fails to import, whose hook
@@ -30,7 +31,7 @@ import pluggy
 
 from omnire import hookspecs
 from omnire.errors import UserError
-from omnire.registry import REGISTRY_KINDS, Provenance, Registry
+from omnire.registry import REGISTRY_KINDS, Provenance, Registry, kind_of
 
 ENTRY_POINT_GROUP = "omnire"
 BUILTIN_MODULES = ("omnire.builtins",)
@@ -196,7 +197,7 @@ def load_plugins(
             fail(name, prov, "import", f"{type(exc).__name__}: {exc}", traceback.format_exc())
             continue
         pm = pluggy.PluginManager(hookspecs.PROJECT)
-        pm.add_hookspecs(hookspecs)
+        pm.add_hookspecs(hookspecs.HookSpecs)
         try:
             pm.register(module, name=name)
         except Exception as exc:  # noqa: BLE001 - a module whose hooks do not match the specs
@@ -206,6 +207,8 @@ def load_plugins(
         try:
             for kind in REGISTRY_KINDS:
                 getattr(pm.hook, kind.hook)(registry=entry.registries[kind.attr])
+            for spec in getattr(module, "SPECS", ()):
+                entry.registries[kind_of(spec).attr].register(spec)
         except Exception as exc:  # noqa: BLE001
             fail(name, prov, "registration", f"{type(exc).__name__}: {exc}", traceback.format_exc())
             continue

@@ -93,16 +93,23 @@ class Registry(Generic[SpecT]):
 
 
 @dataclasses.dataclass(frozen=True)
-class DataparserSpec:
-    """A dataset reader: ``config_factory()`` returns its (tyro-visible) config dataclass."""
+class Spec:
+    """What every registry entry has: the ``name`` it is registered and selected by, and the
+    one-line ``description`` ``omnire plugins`` lists. Each kind of spec adds its callables."""
 
     name: str
     description: str
+
+
+@dataclasses.dataclass(frozen=True)
+class DataparserSpec(Spec):
+    """A dataset reader: ``config_factory()`` returns its (tyro-visible) config dataclass."""
+
     config_factory: Callable[[], Any]
 
 
 @dataclasses.dataclass(frozen=True)
-class NodeTypeSpec:
+class NodeTypeSpec(Spec):
     """A scene-graph node type.
 
     ``categories`` are the actor categories the node type can model (empty for scene-level
@@ -115,8 +122,6 @@ class NodeTypeSpec:
     scene, never remove.
     """
 
-    name: str
-    description: str
     config_factory: Callable[[], Any]
     categories: frozenset[str] = frozenset()
     priority: int = 0
@@ -125,7 +130,7 @@ class NodeTypeSpec:
 
 
 @dataclasses.dataclass(frozen=True)
-class RasterizerSpec:
+class RasterizerSpec(Spec):
     """A rasterizer backend. ``available(device)`` returns ``(ok, reason)``; ``factory(**kw)``
     builds it. ``auto`` selection takes the available one with the highest priority.
 
@@ -134,8 +139,6 @@ class RasterizerSpec:
     An unknown name, or (when ``factory`` is the class) a declared path the class has no
     method for, refuses the spec here; a lazy factory's object is checked when built."""
 
-    name: str
-    description: str
     factory: Callable[..., Any]
     available: Callable[[Any], tuple[bool, str]]
     priority: int = 0
@@ -157,39 +160,33 @@ class RasterizerSpec:
 
 
 @dataclasses.dataclass(frozen=True)
-class LossSpec:
+class LossSpec(Spec):
     """A loss term. ``fn(context) -> scalar tensor or None`` (None = not applicable to this
     view, e.g. the depth loss on a frame without LiDAR)."""
 
-    name: str
-    description: str
     fn: Callable[..., Any]
 
 
 @dataclasses.dataclass(frozen=True)
-class MethodSpec:
+class MethodSpec(Spec):
     """A named preset: ``config_factory()`` returns a full :class:`omnire.method.MethodConfig`."""
 
-    name: str
-    description: str
     config_factory: Callable[[], Any]
 
 
 @dataclasses.dataclass(frozen=True)
-class CommandSpec:
+class CommandSpec(Spec):
     """An ``omnire <name>`` sub-command. ``main(argv, plugins)`` runs it and returns an exit
     code; ``plugins`` is the set the CLI loaded (``--strict``, ``OMNIRE_DISABLE_PLUGINS``
     applied): a command never loads its own, and hands ``plugins.selection`` to any worker
     process it starts. Names may have several words (``bench raster``): the CLI takes the longest name
     that the command line starts with, and ``omnire bench`` lists the ``bench *`` commands."""
 
-    name: str
-    description: str
     main: Callable[[list[str], Any], Optional[int]]
 
 
 @dataclasses.dataclass(frozen=True)
-class PoseEstimatorSpec:
+class PoseEstimatorSpec(Spec):
     """A per-camera human pose estimator for the human pose pipeline (``omnire_body``).
 
     ``factory(**kw)`` builds an object with ``estimate(scene, camera, rois) ->
@@ -197,15 +194,13 @@ class PoseEstimatorSpec:
     returns ``(ok, reason)`` (e.g. a missing optional package). ``auto`` selection takes the
     available one with the highest priority."""
 
-    name: str
-    description: str
     factory: Callable[..., Any]
     available: Callable[[], tuple[bool, str]]
     priority: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
-class SceneWriterSpec:
+class SceneWriterSpec(Spec):
     """Writes a scene in a dataset's own on-disk layout (``omnire synth --format <name>``).
 
     ``write(source, output)`` converts the synthetic scene in ``source`` (the processed
@@ -213,13 +208,11 @@ class SceneWriterSpec:
     exists and is empty. The dataparser of the same name reads the result back.
     """
 
-    name: str
-    description: str
     write: Callable[["Path", "Path"], None]
 
 
 @dataclasses.dataclass(frozen=True)
-class TrainObserverSpec:
+class TrainObserverSpec(Spec):
     """Something that watches training (``--trainer.observers <name>``), e.g. a live viewer.
 
     ``factory(trainer, options)`` (``options``: the ``--trainer.observer-options`` key=value
@@ -227,8 +220,6 @@ class TrainObserverSpec:
     called after every ``--trainer.observe-every`` steps and at the end, and ``close()``.
     It may read ``trainer.recon`` (the scene runtime) and must not change it."""
 
-    name: str
-    description: str
     factory: Callable[[Any, dict[str, str]], Any]
 
 
@@ -241,17 +232,33 @@ class RegistryKind:
     label: str
     spec: type
     hook: str
+    registers: str
+    """What the hook registers (its docstring)."""
 
 
 REGISTRY_KINDS: tuple[RegistryKind, ...] = (
-    RegistryKind("dataparsers", "dataparser", DataparserSpec, "omnire_register_dataparsers"),
-    RegistryKind("node_types", "node type", NodeTypeSpec, "omnire_register_node_types"),
-    RegistryKind("rasterizers", "rasterizer", RasterizerSpec, "omnire_register_rasterizers"),
-    RegistryKind("losses", "loss", LossSpec, "omnire_register_losses"),
-    RegistryKind("methods", "method", MethodSpec, "omnire_register_methods"),
-    RegistryKind("commands", "command", CommandSpec, "omnire_register_commands"),
-    RegistryKind("pose_estimators", "pose estimator", PoseEstimatorSpec, "omnire_register_pose_estimators"),
-    RegistryKind("scene_writers", "scene writer", SceneWriterSpec, "omnire_register_scene_writers"),
-    RegistryKind("train_observers", "training observer", TrainObserverSpec, "omnire_register_train_observers"),
+    RegistryKind("dataparsers", "dataparser", DataparserSpec, "omnire_register_dataparsers", "dataset readers"),
+    RegistryKind("node_types", "node type", NodeTypeSpec, "omnire_register_node_types", "scene-graph node types"),
+    RegistryKind("rasterizers", "rasterizer", RasterizerSpec, "omnire_register_rasterizers", "rasterizer backends"),
+    RegistryKind("losses", "loss", LossSpec, "omnire_register_losses", "loss terms"),
+    RegistryKind("methods", "method", MethodSpec, "omnire_register_methods",
+                 "methods (named presets of node types, losses and settings)"),
+    RegistryKind("commands", "command", CommandSpec, "omnire_register_commands",
+                 "``omnire`` sub-commands (``bench *`` commands included)"),
+    RegistryKind("pose_estimators", "pose estimator", PoseEstimatorSpec, "omnire_register_pose_estimators",
+                 "per-camera human pose estimators (used by the SMPL node type's scene preparation)"),
+    RegistryKind("scene_writers", "scene writer", SceneWriterSpec, "omnire_register_scene_writers",
+                 "writers of a dataset's on-disk layout (``omnire synth --format``)"),
+    RegistryKind("train_observers", "training observer", TrainObserverSpec, "omnire_register_train_observers",
+                 "training observers (``--trainer.observers``), e.g. a live viewer"),
 )
 """Every registry kind, in the order ``omnire plugins`` lists them."""
+
+
+def kind_of(spec: Any) -> RegistryKind:
+    """The registry kind a spec object belongs to (a plugin's ``SPECS`` entries are sorted by it)."""
+    for kind in REGISTRY_KINDS:
+        if isinstance(spec, kind.spec):
+            return kind
+    raise RegistryError(f"{spec!r} is not a spec; expected one of "
+                        + ", ".join(kind.spec.__name__ for kind in REGISTRY_KINDS))

@@ -85,22 +85,10 @@ class RunDirectory:
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path).resolve()
-
-    @property
-    def info_path(self) -> Path:
-        return self.path / "run.json"
-
-    @property
-    def metrics_path(self) -> Path:
-        return self.path / "metrics.jsonl"
-
-    @property
-    def log_path(self) -> Path:
-        return self.path / "train.log"
-
-    @property
-    def checkpoint_dir(self) -> Path:
-        return self.path / "checkpoints"
+        self.info_path = self.path / "run.json"
+        self.metrics_path = self.path / "metrics.jsonl"
+        self.log_path = self.path / "train.log"
+        self.checkpoint_dir = self.path / "checkpoints"
 
     def holds_run(self) -> bool:
         return self.info_path.exists()

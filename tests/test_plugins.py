@@ -183,3 +183,69 @@ def test_plugin_selection_crosses_to_a_worker_process(tmp_path):
     assert out.returncode == 0 and out.stdout.split() == ["False", "True"], out.stderr
     out = worker(dataclasses.replace(plugins.selection, strict=True))
     assert out.returncode != 0 and "PluginLoadError" in out.stderr and "omnire-test-fails" in out.stderr
+
+
+def _module(name: str, **attrs) -> "types.ModuleType":
+    import types
+
+    module = types.ModuleType(name)
+    module.__dict__.update(attrs)
+    return module
+
+
+def test_declared_specs_register_by_kind_and_import_on_first_call(tmp_path, monkeypatch):
+    """A plugin module's ``SPECS`` land in the registry of each spec's kind; a ``lazy`` target
+    is imported when the spec is used, not when it is registered."""
+    from omnire.api import CommandSpec, SceneWriterSpec, lazy
+
+    (tmp_path / "lazy_target_cmd.py").write_text("def main(argv, plugins):\n    return len(argv) + 40\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "lazy_target_cmd", raising=False)
+    specs = (CommandSpec("lazy-cmd", "a declared command", lazy("lazy_target_cmd:main")),
+             SceneWriterSpec("lazy-format", "a declared writer", lazy("lazy_target_cmd:write_scene")))
+    plugins = load_plugins(entry_points=False, extra_modules=(_module("declared_plugin", SPECS=specs),))
+    assert not plugins.failures
+    assert plugins.commands.names().count("lazy-cmd") == 1 and "lazy-format" in plugins.scene_writers
+    assert "lazy-cmd" not in plugins.scene_writers and "lazy-format" not in plugins.commands
+    assert plugins.commands.provenance("lazy-cmd").distribution == "declared_plugin"
+    assert "lazy_target_cmd" not in sys.modules
+    assert plugins.commands.get("lazy-cmd").main(["a", "b"], plugins) == 42
+    assert "lazy_target_cmd" in sys.modules
+    with pytest.raises(AttributeError, match="write_scene"):  # a wrong attribute fails where it is used
+        plugins.scene_writers.get("lazy-format").write(tmp_path, tmp_path)
+
+
+def test_declared_specs_refuse_what_is_not_a_spec():
+    """A ``SPECS`` entry that is not a spec fails its plugin (nothing of it kept), by name;
+    strict mode raises; a malformed lazy target is refused when written."""
+    from omnire.api import CommandSpec, LazyTargetError, lazy
+
+    bad = _module("bad_specs", SPECS=(CommandSpec("kept-out", "d", lazy("json:dumps")), "not a spec"))
+    plugins = load_plugins(entry_points=False, extra_modules=(bad,))
+    assert "kept-out" not in plugins.commands
+    (failure,) = plugins.failures
+    assert failure.plugin == "bad_specs" and failure.stage == "registration" and "'not a spec' is not a spec" in failure.error
+    with pytest.raises(PluginLoadError, match="bad_specs"):
+        load_plugins(strict=True, entry_points=False, extra_modules=(bad,))
+    for target in ("json.dumps", "json:", ":dumps", "json:dumps:x", "1json:dumps", None):
+        with pytest.raises(LazyTargetError, match="expected 'package.module:attribute'"):
+            lazy(target)
+
+
+def test_loading_plugins_imports_no_command_or_reader_module():
+    """Plugins are loaded for every command: registration imports none of the modules behind
+    the lazy specs (commands, readers, writers, observers), in a fresh process. (The kitti,
+    nuScenes and nuPlan packages import their readers in their ``__init__``.)"""
+    lazy_modules = ["omnire_serve.cli", "omnire_serve.bench", "omnire_sim.cli", "omnire_sim.bench", "omnire_viewer.cli",
+                    "omnire_viewer.observer", "omnire_export.cli", "omnire_compact.cli", "omnire_batch.cli",
+                    "omnire_body.bench", "omnire_method.bench_skip", "omnire_synthetic.cli", "omnire_kitti.writer",
+                    "omnire_nuscenes.writer", "omnire_nuplan.writer", "omnire_argoverse2.dataparser",
+                    "omnire_argoverse2.writer", "omnire_rasterizer_gsplat.rasterizer",
+                    "omnire_pose_mediapipe.estimator", "omnire_processed.reader", "omnire_synthetic.dataparser"]
+    code = ("import json, sys; from omnire.plugins import load_plugins; p = load_plugins(); "
+            "print(json.dumps([sorted(p.commands.names()), sorted(m for m in sys.modules if m.startswith('omnire_'))]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    commands, imported = json.loads(out.stdout)
+    assert {"serve", "sim", "view", "export", "compact", "batch", "bench humanpose", "synth"} <= set(commands)
+    assert sorted(set(lazy_modules) & set(imported)) == []

@@ -36,6 +36,7 @@ from pathlib import Path
 import tyro
 
 from omnire.bench.machine import machine_info
+from omnire.bench.memory import process_status_kib
 
 
 @dataclasses.dataclass
@@ -97,22 +98,6 @@ def make_scene(n: int, height: int, width: int, coverage: float = 8.0, seed: int
     return {k: t.to(device) for k, t in out.items()}
 
 
-def _rss_kib() -> int:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1])
-    return 0
-
-
-def _hwm_kib() -> int:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1])
-    return 0
-
-
 def _child(spec_json: str) -> None:
     """Run one case; print one JSON line with the result."""
     import torch
@@ -135,7 +120,7 @@ def _child(spec_json: str) -> None:
     sync = torch.cuda.synchronize if spec["device"].startswith("cuda") else (lambda: None)
     if spec["device"].startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
-    base = _rss_kib()
+    base = process_status_kib("VmRSS")
     try:
         with open("/proc/self/clear_refs", "w") as fh:
             fh.write("5")
@@ -174,7 +159,7 @@ def _child(spec_json: str) -> None:
         peak_mb = torch.cuda.max_memory_allocated() / 2**20
         mem_note = "CUDA max_memory_allocated"
     else:
-        peak_mb = max(0, _hwm_kib() - base) / 1024
+        peak_mb = max(0, process_status_kib("VmHWM") - base) / 1024
         mem_note = "" if hwm_reset else "upper bound (peak RSS counter not resettable)"
 
     def median(xs):

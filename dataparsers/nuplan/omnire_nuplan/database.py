@@ -19,6 +19,7 @@ the row's token and the column.
 """
 from __future__ import annotations
 
+import contextlib
 import copyreg
 import io
 import math
@@ -161,7 +162,7 @@ def _nested_numbers(obj: Any, shape: tuple[int, ...]) -> bool:
             and all(_nested_numbers(o, shape[1:]) for o in obj))
 
 
-class LogDatabase:
+class LogDatabase(contextlib.AbstractContextManager):
     """A nuPlan log database opened read-only (the file is never written)."""
 
     def __init__(self, path: Path) -> None:
@@ -181,9 +182,6 @@ class LogDatabase:
 
     def close(self) -> None:
         self.conn.close()
-
-    def __enter__(self) -> "LogDatabase":
-        return self
 
     def __exit__(self, *exc) -> None:
         self.close()

@@ -135,24 +135,18 @@ def generate_segment(path: Path, size_bytes: int, seed: int = 0, image_size: tup
     return {"frames": frames, "bytes": path.stat().st_size}
 
 
-def _status_kb(field: str) -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1])
-    raise RuntimeError(f"/proc/self/status has no {field}")
-
-
 def read_and_measure(path: Path, image_dir: Path, load_lidar: bool, max_points: int) -> dict:
     """In this process: parse ``path`` and report memory (run it in a fresh process)."""
+    from omnire.command_api import process_status_kib
     from omnire_waymo.dataparser import WaymoConfig
     import google.protobuf.message  # noqa: F401
 
-    base = _status_kb("VmRSS")
+    base = process_status_kib("VmRSS")
     t = time.perf_counter()
     scene = WaymoConfig(data=path, image_dir=image_dir, cameras=FRAME_CAMERAS, load_lidar=load_lidar,
                         max_lidar_points_per_frame=max_points).setup().parse()
     seconds = time.perf_counter() - t
-    peak = _status_kb("VmHWM")
+    peak = process_status_kib("VmHWM")
     retained = sum(p.nbytes for p in (scene.lidar.points if scene.lidar else []) if p is not None)
     retained += sum(c.cam_to_world.nbytes + sum(v.nbytes for v in c.extras.values()) for c in scene.cameras)
     retained += sum(tr.poses.nbytes + sum(getattr(v, "nbytes", 0) for v in tr.extras.values()) for tr in scene.tracks)

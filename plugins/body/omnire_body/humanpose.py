@@ -142,19 +142,32 @@ def complete_sequence(seq: HumanPoseSequence) -> HumanPoseSequence:
 
 
 # ---------------------------------------------------------------------------------- matching
-def project_box(track: ActorTrack, scene: SceneData, camera: int, frame: int, near: float = 0.1) -> Optional[np.ndarray]:
-    """(4,) x0, y0, x1, y1 of the track's 3D box projected into ``camera`` at ``frame``,
-    clipped to the image; None when absent, behind the camera or outside the image."""
+_UNIT_BOX = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)])
+"""(8, 3) corners of the unit box about its centre."""
+
+
+def _project_box_points(track: ActorTrack, scene: SceneData, camera: int, frame: int, local: np.ndarray,
+                        near: float) -> Optional[np.ndarray]:
+    """(N, 2) pixels of the (N, 3) box-local points ``local`` of ``track`` at ``frame`` in
+    ``camera``; None when the track is absent or a point is nearer than ``near`` (m)."""
     if not track.present[frame]:
         return None
-    corners = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)]) * track.size
-    world = corners @ track.poses[frame][:3, :3].T + track.poses[frame][:3, 3]
+    world = local @ track.poses[frame][:3, :3].T + track.poses[frame][:3, 3]
     cam = scene.cameras[camera]
     w2c = np.linalg.inv(cam.cam_to_world[frame])
     p = world @ w2c[:3, :3].T + w2c[:3, 3]
     if (p[:, 2] < near).any():
         return None
-    uv = p[:, :2] / p[:, 2:] @ cam.intrinsics[:2, :2].T + cam.intrinsics[:2, 2]
+    return p[:, :2] / p[:, 2:] @ cam.intrinsics[:2, :2].T + cam.intrinsics[:2, 2]
+
+
+def project_box(track: ActorTrack, scene: SceneData, camera: int, frame: int, near: float = 0.1) -> Optional[np.ndarray]:
+    """(4,) x0, y0, x1, y1 of the track's 3D box projected into ``camera`` at ``frame``,
+    clipped to the image; None when absent, behind the camera or outside the image."""
+    uv = _project_box_points(track, scene, camera, frame, _UNIT_BOX * track.size, near)
+    if uv is None:
+        return None
+    cam = scene.cameras[camera]
     box = np.array([uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()])
     box = np.clip(box, 0, [cam.width, cam.height, cam.width, cam.height])
     if box[2] - box[0] < 1 or box[3] - box[1] < 1:
@@ -178,20 +191,11 @@ def project_outline(track: ActorTrack, scene: SceneData, camera: int, frame: int
     """(K, 2) convex outline (pixels, not clipped to the image) of the track's 3D box scaled
     by ``extent`` (length and width about the centre, height from the bottom) projected into
     ``camera`` at ``frame``; None when absent or behind the camera."""
-    if not track.present[frame]:
-        return None
-    unit = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)])
     size = np.asarray(track.size, dtype=np.float64)
-    local = unit * size * [extent[0], extent[1], 1.0]
-    local[:, 2] = -size[2] / 2 + (unit[:, 2] + 0.5) * size[2] * extent[2]
-    world = local @ track.poses[frame][:3, :3].T + track.poses[frame][:3, 3]
-    cam = scene.cameras[camera]
-    w2c = np.linalg.inv(cam.cam_to_world[frame])
-    p = world @ w2c[:3, :3].T + w2c[:3, 3]
-    if (p[:, 2] < near).any():
-        return None
-    uv = p[:, :2] / p[:, 2:] @ cam.intrinsics[:2, :2].T + cam.intrinsics[:2, 2]
-    return convex_hull(uv)
+    local = _UNIT_BOX * size * [extent[0], extent[1], 1.0]
+    local[:, 2] = -size[2] / 2 + (_UNIT_BOX[:, 2] + 0.5) * size[2] * extent[2]
+    uv = _project_box_points(track, scene, camera, frame, local, near)
+    return None if uv is None else convex_hull(uv)
 
 
 def convex_hull(points: np.ndarray) -> np.ndarray:

@@ -1,14 +1,6 @@
-"""Entry point (``omnire`` group, name ``compact``): registers ``omnire compact``."""
-from omnire.api import CommandSpec, hookimpl
+"""Entry point (``omnire`` group, name ``compact``): registers ``omnire compact`` (imported on use:
+listing commands stays cheap)."""
+from omnire.api import CommandSpec, lazy
 
-
-def _main(argv, plugins):
-    from omnire_compact.cli import main  # imported on use: listing commands stays cheap
-
-    return main(argv, plugins)
-
-
-@hookimpl
-def omnire_register_commands(registry) -> None:
-    registry.register(CommandSpec("compact", "a smaller copy of a trained run: Gaussians pruned by their "
-                                  "contribution to the training views, optionally fine-tuned", _main))
+SPECS = (CommandSpec("compact", "a smaller copy of a trained run: Gaussians pruned by their contribution to the "
+                     "training views, optionally fine-tuned", lazy("omnire_compact.cli:main")),)

@@ -6,7 +6,7 @@ Ablations of the paper, as flags:
 - no body-pose refinement:  --method.nodes.smpl.no-refine-poses
 - no box refinement:        --method.nodes.rigid.no-refine-boxes (and .smpl / .deformable likewise)
 """
-from omnire.api import CommandSpec, MethodSpec, hookimpl
+from omnire.api import CommandSpec, MethodSpec, lazy
 
 
 def omnire_method():
@@ -25,18 +25,8 @@ def omnire_method():
     )
 
 
-@hookimpl
-def omnire_register_methods(registry) -> None:
-    registry.register(MethodSpec("omnire", "OmniRe: sky + background + rigid + SMPL + deformable actors", omnire_method))
-
-
-def _bench_skip(argv: list[str], plugins) -> int:
-    from omnire_method.bench_skip import main
-
-    return main(argv, plugins)
-
-
-@hookimpl
-def omnire_register_commands(registry) -> None:
-    registry.register(CommandSpec("bench skip", "cost of what a scene does not need: omnire without humans vs a "
-                                  "baseline, actors absent from the rendered frames", _bench_skip))
+SPECS = (
+    MethodSpec("omnire", "OmniRe: sky + background + rigid + SMPL + deformable actors", omnire_method),
+    CommandSpec("bench skip", "cost of what a scene does not need: omnire without humans vs a baseline, actors "
+                "absent from the rendered frames", lazy("omnire_method.bench_skip:main")),
+)

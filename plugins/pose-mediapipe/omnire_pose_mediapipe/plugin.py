@@ -1,20 +1,7 @@
-from omnire.api import PoseEstimatorSpec, hookimpl
+"""Entry point (``omnire`` group, name ``pose_mediapipe``): the MediaPipe pose estimator, imported on use."""
+from omnire.api import PoseEstimatorSpec, lazy
 
-
-def _available():
-    from omnire_pose_mediapipe.estimator import available
-
-    return available()
-
-
-def _factory(**kw):
-    from omnire_pose_mediapipe.estimator import MediapipeEstimator
-
-    return MediapipeEstimator(**kw)
-
-
-@hookimpl
-def omnire_register_pose_estimators(registry) -> None:
-    registry.register(PoseEstimatorSpec(
-        "mediapipe", "MediaPipe Pose landmarks on crops of the projected pedestrian boxes + IK to SMPL rotations "
-        "(offline; needs mediapipe 0.10.x)", _factory, _available, priority=10))
+SPECS = (PoseEstimatorSpec(
+    "mediapipe", "MediaPipe Pose landmarks on crops of the projected pedestrian boxes + IK to SMPL rotations "
+    "(offline; needs mediapipe 0.10.x)", lazy("omnire_pose_mediapipe.estimator:MediapipeEstimator"),
+    lazy("omnire_pose_mediapipe.estimator:available"), priority=10),)

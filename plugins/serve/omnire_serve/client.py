@@ -4,6 +4,7 @@ and message."""
 from __future__ import annotations
 
 import base64
+import contextlib
 from typing import Optional, Sequence
 
 import httpx
@@ -21,7 +22,7 @@ class ServerRefused(Exception):
         self.status, self.field, self.message = status, field, message
 
 
-class OmnireClient:
+class OmnireClient(contextlib.AbstractContextManager):
     """A client of one server (``url``, e.g. ``http://127.0.0.1:8000``) in one session.
     ``token``: sent as ``Authorization: Bearer``; ``session``: the X-Omnire-Session id."""
 
@@ -34,9 +35,6 @@ class OmnireClient:
 
     def close(self) -> None:
         self.http.close()
-
-    def __enter__(self) -> "OmnireClient":
-        return self
 
     def __exit__(self, *exc) -> None:
         self.close()

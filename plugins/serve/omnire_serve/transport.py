@@ -12,20 +12,28 @@ from omnire_serve.client import OmnireClient
 from omnire_serve.served import Episode, ServedScene
 
 
-class LocalTransport:
+class _SessionTransport:
+    """What both transports do alike: ``session`` (an Episode or a client of one) takes the
+    reset and the scenario edits."""
+
+    def __init__(self, session: "Episode | OmnireClient") -> None:
+        self.session = session
+
+    def reset(self, scenario: Optional[dict]) -> None:
+        self.session.reset()
+        if scenario:
+            self.session.set_scenario(scenario)
+
+
+class LocalTransport(_SessionTransport):
     """The scene in this process."""
 
     def __init__(self, served: ServedScene) -> None:
+        super().__init__(Episode(served))
         self.served = served
-        self.episode = Episode(served)
 
     def metadata(self) -> dict:
         return self.served.metadata()
-
-    def reset(self, scenario: Optional[dict]) -> None:
-        self.episode.reset()
-        if scenario:
-            self.episode.set_scenario(scenario)
 
     def render_rig(self, rig_to_world: np.ndarray, timestamp: int, cameras: Sequence[str],
                    size: Optional[tuple[int, int]]) -> dict[str, np.ndarray]:
@@ -33,29 +41,21 @@ class LocalTransport:
         pose = s.pose(rig_to_world, "pose")
         cams = [s.camera_index(n, "cameras") for n in cameras]
         sizes = [s.size_of(*(size or (None, None)), c) for c in cams]
-        return self.episode.render_rig(pose, s.seconds_at(timestamp), cams, sizes)
+        return self.session.render_rig(pose, s.seconds_at(timestamp), cams, sizes)
 
     def actors_at(self, timestamp: int) -> list[dict]:
-        return [b.as_json() for b in self.episode.boxes_at(self.served.seconds_at(timestamp))]
+        return [b.as_json() for b in self.session.boxes_at(self.served.seconds_at(timestamp))]
 
 
-class HttpTransport:
+class HttpTransport(_SessionTransport):
     """The scene behind an ``omnire serve`` server."""
 
-    def __init__(self, client: OmnireClient) -> None:
-        self.client = client
-
     def metadata(self) -> dict:
-        return self.client.metadata()
-
-    def reset(self, scenario: Optional[dict]) -> None:
-        self.client.reset()
-        if scenario:
-            self.client.set_scenario(scenario)
+        return self.session.metadata()
 
     def render_rig(self, rig_to_world: np.ndarray, timestamp: int, cameras: Sequence[str],
                    size: Optional[tuple[int, int]]) -> dict[str, np.ndarray]:
-        return self.client.render_rig(rig_to_world, timestamp, cameras, size, image_format="raw")
+        return self.session.render_rig(rig_to_world, timestamp, cameras, size, image_format="raw")
 
     def actors_at(self, timestamp: int) -> list[dict]:
-        return self.client.actors_at(timestamp)
+        return self.session.actors_at(timestamp)

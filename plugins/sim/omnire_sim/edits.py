@@ -22,6 +22,12 @@ import numpy as np
 
 from omnire.api import ConfigError
 
+__all__ = [
+    "ActorEdit", "CameraSpec", "Clock", "Insertion", "LaneShift", "Motion", "OutputSpec", "Placement", "Scenario",
+    "ScenarioError", "Trajectory", "Waypoint",
+]
+"""The edit model (``omnire_sim`` re-exports it); ``Where`` (a source location) is internal."""
+
 
 class ScenarioError(ConfigError):
     """A scenario is malformed or does not fit the scene; the message names the file, the
@@ -239,6 +245,15 @@ class Placement:
         return not any(self.offset) and not any(self.offset_world) and self.yaw == 0.0
 
 
+def _check_movement(where: Where, trajectory: Optional[Trajectory], clock: Clock, motion: Optional[Motion]) -> None:
+    """The checks an edited and an inserted actor share: its path, clock and body motion."""
+    if trajectory is not None:
+        trajectory.check(where)
+    clock.check(where)
+    if motion is not None:
+        motion.check(where)
+
+
 @dataclasses.dataclass(frozen=True)
 class ActorEdit:
     """Changes to one actor of the scene (by track id). See the module docstring."""
@@ -259,11 +274,7 @@ class ActorEdit:
                    or self.motion is not None)
         if self.remove and changes:
             raise w.error("remove", "a removed actor cannot also be moved, re-timed or given a motion")
-        if self.trajectory is not None:
-            self.trajectory.check(w)
-        self.clock.check(w)
-        if self.motion is not None:
-            self.motion.check(w)
+        _check_movement(w, self.trajectory, self.clock, self.motion)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -289,11 +300,7 @@ class Insertion:
         w = self.where
         if (self.trajectory is None) == (self.replace is None):
             raise w.error("trajectory", "an inserted actor needs exactly one of 'trajectory' or 'replace'")
-        if self.trajectory is not None:
-            self.trajectory.check(w)
-        self.clock.check(w)
-        if self.motion is not None:
-            self.motion.check(w)
+        _check_movement(w, self.trajectory, self.clock, self.motion)
 
 
 @dataclasses.dataclass(frozen=True)
