@@ -6,6 +6,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import types
 import subprocess
 import sys
 import textwrap
@@ -185,9 +186,7 @@ def test_plugin_selection_crosses_to_a_worker_process(tmp_path):
     assert out.returncode != 0 and "PluginLoadError" in out.stderr and "omnire-test-fails" in out.stderr
 
 
-def _module(name: str, **attrs) -> "types.ModuleType":
-    import types
-
+def _module(name: str, **attrs) -> types.ModuleType:
     module = types.ModuleType(name)
     module.__dict__.update(attrs)
     return module
