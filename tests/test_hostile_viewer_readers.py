@@ -140,6 +140,8 @@ class ViewerProcess:
             found = re.search(r"omnire view: (http://\S+)", line)
             if found:
                 self.url = found.group(1)
+        if "--host" in args and "127.0.0.1" not in args:  # the banner's second line (same write)
+            self.lines.append(self.proc.stdout.readline())
         self.port = int(re.search(r":(\d+)(?:/|$)", self.url).group(1))
 
     def ws_url(self, query: str = "") -> str:

@@ -124,11 +124,13 @@ def main(argv: list[str], plugins) -> int:
     viewer = Viewer(scene, args.host, args.port, title=f"{recon.run_info.method} - {args.run_dir.name}",
                     frame=args.frame, verbose=False, token=token)
     shown = f", scenario {args.scenario}" if scenario is not None else ""
-    console.print(f"omnire view: {viewer.url}  ({recon.run_info.method}, step {recon.step}, "
-                  f"{recon.num_gaussians():,} Gaussians{shown}; Ctrl-C stops)", highlight=False, soft_wrap=True)
+    banner = (f"omnire view: {viewer.url}  ({recon.run_info.method}, step {recon.step}, "
+              f"{recon.num_gaussians():,} Gaussians{shown}; Ctrl-C stops)")
     if not is_loopback(args.host):
-        console.print(f"omnire view: listening on {args.host}:{viewer.port}, reachable from other machines; "
-                      "every client needs the token in the URL above", highlight=False, soft_wrap=True)
+        banner += (f"\nomnire view: listening on {args.host}:{viewer.port}, reachable from other machines; "
+                   "every client needs the token in the URL above")
+    console.print(banner, highlight=False, soft_wrap=True)  # one write: a reader of the URL line gets both
+    console.file.flush()
     try:
         start = time.monotonic()
         while not args.seconds or time.monotonic() - start < args.seconds:
