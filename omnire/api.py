@@ -71,6 +71,14 @@ from omnire.io.cache import user_cache_dir
 from omnire.io.documents import TomlDocument, load_json, load_toml, parse_json, parse_toml, read_text
 from omnire.io.images import write_png
 from omnire.io.outputs import OutputError, check_location, check_output_dir, staged_directory, staged_files, writing
+from omnire.lidarprojection import (
+    SphereTiles,
+    SphericalSplats,
+    max_response_range,
+    project_lidar,
+    ray_directions,
+    wrap_degrees,
+)
 from omnire.limits import (
     DEFAULT_FRAME_CAP,
     MAX_FPS,
@@ -134,12 +142,17 @@ from omnire.rasterization import (
     TRANSMITTANCE_MIN,
     FusedTrainingRasterizer,
     InferenceRasterizer,
+    LidarRasterizer,
+    LidarRays,
+    LidarRenderOutput,
+    LidarSettings,
     RasterInputError,
     Rasterizer,
     RasterSettings,
     RenderOutput,
     Splats,
     SsimRasterizer,
+    check_lidar_inputs,
     check_raster_inputs,
 )
 from omnire.registration import Lazy, LazyTargetError, lazy
