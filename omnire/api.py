@@ -168,6 +168,7 @@ from omnire.registry import (
     SceneWriterSpec,
     TrainObserverSpec,
 )
+from omnire.rollingshutter import SweepSector, spin_times, sweep_sectors
 from omnire.rowsparse import row_sparse
 from omnire.runconfig import TrainConfig, TrainerConfig, parse_device
 from omnire.rundir import CheckpointError, RunDirectory, RunDirectoryError, flatten_eval
