@@ -54,6 +54,7 @@ from omnire.geometry import (
     axis_angle_to_rotmat,
     axis_rotation,
     invert_se3,
+    lowpass_conics,
     quat_multiply,
     quat_to_rotmat,
     quat_to_se3,

@@ -81,12 +81,17 @@ Lists bin_rays(const int64_t* tile, int64_t R, int64_t tiles) {
   return {off, items};
 }
 
-// The rays of one tile, gathered: azimuth in [0, 360), elevation, direction.
+// The walk of one tile's rays over its list: the rays gathered (azimuth in [0, 360),
+// elevation, direction) and the state the forward and the backward share per ray
+// (transmittance, still composited, median found) with scratch for the exponents.
 template <typename S>
-struct TileRays {
+struct TileWalk {
   std::vector<int64_t> id;
-  std::vector<S> az, el, u;  // u: (P, 3)
-  void load(const Lists& rl, int64_t tile, const S* ray_az, const S* ray_el, const S* dirs) {
+  std::vector<S> az, el, u, T, pw;  // u: (P, 3)
+  std::vector<uint8_t> alive, crossed;
+  int64_t live = 0;
+  // Gather the rays of ``tile`` and reset their state; returns their number.
+  int64_t start(const Lists& rl, int64_t tile, const S* ray_az, const S* ray_el, const S* dirs) {
     const int64_t* off = rl.off.data_ptr<int64_t>();
     const int64_t* ids = rl.items.data_ptr<int64_t>();
     const int64_t P = off[tile + 1] - off[tile];
@@ -100,6 +105,12 @@ struct TileRays {
       el[k] = ray_el[j];
       for (int c = 0; c < 3; ++c) u[3 * k + c] = dirs[3 * j + c];
     }
+    T.assign(P, S(1));
+    pw.resize(P);
+    alive.assign(P, 1);
+    crossed.assign(P, 0);
+    live = P;
+    return P;
   }
 };
 
@@ -113,7 +124,7 @@ inline S azimuth_offset(S ray, S gaussian) {
 // Exponent of Gaussian g at every ray of the tile (a plain loop the compiler vectorises;
 // the forward and the backward both call it, so their decisions agree bit for bit).
 template <typename S>
-inline void powers(const S* g, const TileRays<S>& tr, S* pw) {
+inline void powers(const S* g, const TileWalk<S>& tr, S* pw) {
   const S gaz = g[R_AZ], gel = g[R_EL], ca = g[R_CA], cb = g[R_CB], cc = g[R_CC];
   const S* az = tr.az.data();
   const S* el = tr.el.data();
@@ -173,56 +184,48 @@ void composite_forward(const Lists& gl, const Lists& rl, const S* rec, const S* 
                        const S* ray_el, const S* dirs, S rmin, S rmax, S* out_feat, S* out_rsum, S* out_alpha,
                        S* out_median, int nthreads) {
   const int64_t tiles = gl.off.size(0) - 1;
-  const int64_t* roff = rl.off.data_ptr<int64_t>();
   const int64_t* goff = gl.off.data_ptr<int64_t>();
   const int32_t* gids = gl.items.data_ptr<int32_t>();
 #pragma omp parallel num_threads(nthreads)
   {
-    TileRays<S> tr;
-    std::vector<S> T, rsum, median, acc, pw;
-    std::vector<uint8_t> alive, crossed;
+    TileWalk<S> ws;
+    std::vector<S> rsum, median, acc;
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < tiles; ++tile) {
-      const int64_t P = roff[tile + 1] - roff[tile];
+      const int64_t P = ws.start(rl, tile, ray_az, ray_el, dirs);
       if (P == 0) continue;
-      tr.load(rl, tile, ray_az, ray_el, dirs);
-      T.assign(P, S(1));
       rsum.assign(P, S(0));
       median.assign(P, rmax);
       acc.assign(P * F, S(0));
-      pw.resize(P);
-      alive.assign(P, 1);
-      crossed.assign(P, 0);
-      int64_t live = P;
-      for (int64_t e = goff[tile]; e < goff[tile + 1] && live > 0; ++e) {
+      for (int64_t e = goff[tile]; e < goff[tile + 1] && ws.live > 0; ++e) {
         const int64_t gi = gids[e];
         const S* g = rec + gi * REC;
-        powers(g, tr, pw.data());
+        powers(g, ws, ws.pw.data());
         const S* f = feat + gi * F;
         Pair<S> p;
         for (int64_t k = 0; k < P; ++k) {
-          if (!alive[k] || !evaluate(g, pw[k], &tr.u[3 * k], rmin, rmax, p)) continue;
-          const S nT = T[k] * (S(1) - p.a);
+          if (!ws.alive[k] || !evaluate(g, ws.pw[k], &ws.u[3 * k], rmin, rmax, p)) continue;
+          const S nT = ws.T[k] * (S(1) - p.a);
           if (nT <= S(T_MIN)) {  // keep only while the transmittance stays above 1e-4
-            alive[k] = 0;
-            --live;
+            ws.alive[k] = 0;
+            --ws.live;
             continue;
           }
-          const S w = p.a * T[k];
+          const S w = p.a * ws.T[k];
           for (int c = 0; c < F; ++c) acc[k * F + c] += w * f[c];
           rsum[k] += w * p.r;
-          if (!crossed[k] && nT <= S(0.5)) {  // T was above 0.5 (it only falls by composited pairs)
+          if (!ws.crossed[k] && nT <= S(0.5)) {  // T was above 0.5 (it only falls by composited pairs)
             median[k] = p.r;
-            crossed[k] = 1;
+            ws.crossed[k] = 1;
           }
-          T[k] = nT;
+          ws.T[k] = nT;
         }
       }
       for (int64_t k = 0; k < P; ++k) {
-        const int64_t j = tr.id[k];
+        const int64_t j = ws.id[k];
         for (int c = 0; c < F; ++c) out_feat[j * F + c] = acc[k * F + c];
         out_rsum[j] = rsum[k];
-        out_alpha[j] = S(1) - T[k];
+        out_alpha[j] = S(1) - ws.T[k];
         out_median[j] = median[k];
       }
     }
@@ -239,7 +242,6 @@ void composite_backward(const Lists& gl, const Lists& rl, const S* rec, const S*
                         const S* o_alpha, const S* g_feat, const S* g_rsum, const S* g_alpha, const S* g_median,
                         int64_t N, double* grads, int nthreads) {
   const int64_t tiles = gl.off.size(0) - 1;
-  const int64_t* roff = rl.off.data_ptr<int64_t>();
   const int64_t* goff = gl.off.data_ptr<int64_t>();
   const int32_t* gids = gl.items.data_ptr<int32_t>();
   const int K = G_F + F;
@@ -248,27 +250,21 @@ void composite_backward(const Lists& gl, const Lists& rl, const S* rec, const S*
   {
     const int me = omp_get_thread_num();
     double* mine = me == 0 ? grads : buffers.data() + size_t(me - 1) * N * K;  // thread 0 writes the output
-    TileRays<S> tr;
-    std::vector<S> T, prefix, total, gf, gR, gA, gM, pw;
-    std::vector<uint8_t> alive, crossed;
+    TileWalk<S> ws;
+    std::vector<S> prefix, total, gf, gR, gA, gM;
     std::vector<double> d(K);
 #pragma omp for schedule(static, 1)
     for (int64_t tile = 0; tile < tiles; ++tile) {
-      const int64_t P = roff[tile + 1] - roff[tile];
+      const int64_t P = ws.start(rl, tile, ray_az, ray_el, dirs);
       if (P == 0) continue;
-      tr.load(rl, tile, ray_az, ray_el, dirs);
-      T.assign(P, S(1));
       prefix.assign(P, S(0));
       total.resize(P);
       gf.resize(P * F);
       gR.resize(P);
       gA.resize(P);
       gM.resize(P);
-      pw.resize(P);
-      alive.assign(P, 1);
-      crossed.assign(P, 0);
       for (int64_t k = 0; k < P; ++k) {
-        const int64_t j = tr.id[k];
+        const int64_t j = ws.id[k];
         gR[k] = g_rsum[j];
         gA[k] = g_alpha[j];
         gM[k] = g_median[j];
@@ -280,25 +276,24 @@ void composite_backward(const Lists& gl, const Lists& rl, const S* rec, const S*
         }
         total[k] = t;
       }
-      int64_t live = P;
-      for (int64_t e = goff[tile]; e < goff[tile + 1] && live > 0; ++e) {
+      for (int64_t e = goff[tile]; e < goff[tile + 1] && ws.live > 0; ++e) {
         const int64_t gi = gids[e];
         const S* g = rec + gi * REC;
-        powers(g, tr, pw.data());
+        powers(g, ws, ws.pw.data());
         const S* f = feat + gi * F;
         std::fill(d.begin(), d.end(), 0.0);
         bool touched = false;
         Pair<S> p;
         for (int64_t k = 0; k < P; ++k) {
-          if (!alive[k] || !evaluate(g, pw[k], &tr.u[3 * k], rmin, rmax, p)) continue;
-          const S nT = T[k] * (S(1) - p.a);
+          if (!ws.alive[k] || !evaluate(g, ws.pw[k], &ws.u[3 * k], rmin, rmax, p)) continue;
+          const S nT = ws.T[k] * (S(1) - p.a);
           if (nT <= S(T_MIN)) {
-            alive[k] = 0;
-            --live;
+            ws.alive[k] = 0;
+            --ws.live;
             continue;
           }
           touched = true;
-          const S w = p.a * T[k];
+          const S w = p.a * ws.T[k];
           const S* gfk = &gf[k * F];
           S ci = gA[k] + gR[k] * p.r;
           for (int c = 0; c < F; ++c) {
@@ -307,15 +302,15 @@ void composite_backward(const Lists& gl, const Lists& rl, const S* rec, const S*
           }
           prefix[k] += w * ci;
           const S suffix = total[k] - prefix[k];  // sum over the later pairs of w_j c_j
-          const S dal = T[k] * ci - suffix / (S(1) - p.a);
+          const S dal = ws.T[k] * ci - suffix / (S(1) - p.a);
           S dr = w * gR[k];
-          if (!crossed[k] && nT <= S(0.5)) {
+          if (!ws.crossed[k] && nT <= S(0.5)) {
             dr += gM[k];
-            crossed[k] = 1;
+            ws.crossed[k] = 1;
           }
           if (p.raw < S(ALPHA_MAX)) {  // alpha clamped at 0.99: no gradient to opacity or power
-            const S dx = azimuth_offset(tr.az[k], g[R_AZ]);
-            const S de = tr.el[k] - g[R_EL];
+            const S dx = azimuth_offset(ws.az[k], g[R_AZ]);
+            const S de = ws.el[k] - g[R_EL];
             const S dpow = dal * p.a;
             d[G_OP] += double(dal * p.G);
             d[G_CA] += double(S(-0.5) * dpow * dx * dx);
@@ -325,7 +320,7 @@ void composite_backward(const Lists& gl, const Lists& rl, const S* rec, const S*
             d[G_AZ] += double(dpow * (g[R_CA] * dx + g[R_CB] * de));
             d[G_EL] += double(dpow * (g[R_CB] * dx + g[R_CC] * de));
           }
-          const S* u = &tr.u[3 * k];
+          const S* u = &ws.u[3 * k];
           const S dnum = dr / p.den, dden = -dr * p.r / p.den;  // r = num / den
           for (int c = 0; c < 3; ++c) d[G_L + c] += double(dnum * u[c]);
           d[G_Q + 0] += double(dden * u[0] * u[0]);
@@ -334,7 +329,7 @@ void composite_backward(const Lists& gl, const Lists& rl, const S* rec, const S*
           d[G_Q + 3] += double(dden * u[1] * u[1]);
           d[G_Q + 4] += double(dden * S(2) * u[1] * u[2]);
           d[G_Q + 5] += double(dden * u[2] * u[2]);
-          T[k] = nT;
+          ws.T[k] = nT;
         }
         if (touched) {
           double* dst = mine + gi * K;
