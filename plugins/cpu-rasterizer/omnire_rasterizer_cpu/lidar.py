@@ -1,8 +1,8 @@
-"""The ``lidar`` capability of the cpu rasterizer: the projection to the sensor's sphere in
-torch (:func:`omnire.api.project_lidar`, differentiable, shared with the reference), the
-binning and compositing of the rays and their backward natively (csrc/lidar.cpp, OpenMP
-over tiles of the sphere). float64 inputs run the double-precision kernel (gradient
-checks); anything else runs in float32.
+"""The ``lidar`` capability of the cpu rasterizer, natively (csrc/lidar.cpp): the projection
+to the sensor's sphere (the numbers of :func:`omnire.api.project_lidar`, in double) and its
+backward, then the binning and compositing of the rays over tiles of the sphere and their
+backward (OpenMP). float64 inputs run the double-precision kernels (gradient checks);
+anything else runs in float32.
 """
 from __future__ import annotations
 
@@ -14,13 +14,40 @@ from omnire.api import (
     LidarSettings,
     RasterInputError,
     SphereTiles,
+    SphericalSplats,
     Splats,
     check_lidar_inputs,
-    project_lidar,
     ray_directions,
 )
 
 from ._build import lidar_extension
+
+
+class _ProjectFn(torch.autograd.Function):
+    """(means (N,3), quats (N,4), scales (N,3)) -> azimuth, elevation (N,), conics (N,3),
+    quad (N,6), lin (N,3), and without gradient distance (N,), extent (N,2), visible (N,)
+    (:class:`omnire.api.SphericalSplats`). ``meta``: opacities (N,) (they only decide what
+    is drawn here), the pose (4,4) float64, eps_deg2, min_range, max_range, threads."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, meta):
+        opac, pose, eps, rmin, rmax, nthreads = meta
+        out = lidar_extension().lidar_project(means, quats, scales, opac, pose, eps, rmin, rmax, nthreads)
+        ctx.save_for_backward(means, quats, scales, opac, pose)
+        ctx.meta = (eps, rmin, rmax, nthreads)
+        ctx.mark_non_differentiable(*out[5:])
+        return tuple(out)
+
+    @staticmethod
+    def backward(ctx, g_az, g_el, g_con, g_quad, g_lin, _g_dist, _g_ext, _g_vis):
+        means, quats, scales, opac, pose = ctx.saved_tensors
+        eps, rmin, rmax, nthreads = ctx.meta
+        grads = [torch.zeros(shape, dtype=means.dtype) if g is None else g.contiguous().to(means.dtype)
+                 for g, shape in ((g_az, (len(means),)), (g_el, (len(means),)), (g_con, (len(means), 3)),
+                                  (g_quad, (len(means), 6)), (g_lin, (len(means), 3)))]
+        g_means, g_quats, g_scales = lidar_extension().lidar_project_backward(
+            means, quats, scales, opac, pose, eps, rmin, rmax, *grads, nthreads)
+        return g_means, g_quats, g_scales, None
 
 
 class _LidarFn(torch.autograd.Function):
@@ -67,7 +94,12 @@ def rasterize_lidar(splats: Splats, rays: LidarRays, settings: LidarSettings, nu
     dtype = torch.float64 if splats.means.dtype == torch.float64 else torch.float32
     splats = Splats(*(t.to(dtype) for t in (splats.means, splats.quats, splats.scales, splats.opacities,
                                              splats.colors)))
-    proj = project_lidar(splats, rays, settings.eps_deg2)
+    pose = rays.sensor_to_world.detach().to(torch.float64).contiguous()
+    az, el, conics, quad, lin, distance, extent, visible = _ProjectFn.apply(
+        splats.means.contiguous(), splats.quats.contiguous(), splats.scales.contiguous(),
+        (splats.opacities.detach().contiguous(), pose, float(settings.eps_deg2), float(rays.min_range),
+         float(rays.max_range), int(num_threads)))
+    proj = SphericalSplats(az, el, conics, splats.opacities, quad, lin, distance, extent, visible)
     tiles = SphereTiles.for_rays(rays)
     with torch.no_grad():
         drawn = torch.nonzero(proj.visible).flatten()

@@ -122,14 +122,14 @@ def test_degenerate_gaussians_stay_finite_and_agree(dtype):
     """Zero and huge scales, zero and unnormalised quaternions, Gaussians at the sensor, on
     its vertical axis, beyond the range limits, needles along a ray and opacities at the
     threshold: outputs and gradients finite, native equal to the reference in float64 (in
-    float32 the needle's range, a ratio of terms 10^12 apart, is too ill conditioned to
+    float32 a needle's range, a ratio of terms 10^8 apart, is too ill conditioned to
     compare)."""
     means = torch.tensor([[5.0, 0, 0], [0, 0, 0], [0, 0, 3], [0.001, 0, 4], [100, 0, 0], [5, 1, 0], [4, 0, 0.1],
                           [6, -0.2, 0], [3, 3, 0], [5, 0.5, 0.2]], dtype=dtype)
     quats = torch.tensor([[0.0, 0, 0, 0], [5, 0, 0, 0], [1, 1, 1, 1], [1, 0, 0, 0], [1, 0, 0, 0], [1e-30, 0, 0, 0],
                           [1, 0, 0, 0], [0.7, 0, 0.7, 0], [1, 2, 3, 4], [0, 0, 0, 1]], dtype=dtype)
     scales = torch.tensor([[0.0, 0, 0], [1, 1, 1], [1, 1, 1], [1, 1, 1], [1e4, 1e4, 1e4], [1e-3, 2, 0],
-                           [3.0, 1e-6, 1e-6], [0.5, 0.5, 1e-9], [0.2, 0.2, 0.2], [1e3, 1e-3, 1e-3]], dtype=dtype)
+                           [3.0, 1e-6, 1e-6], [0.5, 0.5, 1e-9], [0.2, 0.2, 0.2], [1e2, 1e-2, 1e-2]], dtype=dtype)
     opac = torch.tensor([0.9, 0.9, 0.9, 0.9, 0.9, 0.9, 0.9, 0.9, 1.0 / 255.0, 0.99], dtype=dtype)
     colors = torch.rand(10, 2, dtype=dtype, generator=torch.Generator().manual_seed(0))
     az = torch.tensor([0.0, 359.99, 0.01, 1.0, 5.0, 10.0, 45.0, 180.0, 300.0, -0.5], dtype=dtype)

@@ -1,13 +1,16 @@
-// Native LiDAR compositing for omnire's cpu rasterizer: the ``lidar`` capability of
-// omnire/rasterization.py. The Gaussians arrive projected to the sensor's sphere by
-// omnire/lidarprojection.py (torch, differentiable): per Gaussian its direction (azimuth,
-// elevation, degrees), the inverse angular covariance (conic a, b, c), opacity, the range
-// quadric (quad xx xy xz yy yz zz, lin x y z: t* = d.lin / d^T quad d) and its tile box.
-// Here: bin Gaussians (in the caller's order of centre distance) and rays into tiles of the
-// sphere, composite the rays of each tile over its list (each Gaussian of the list against
-// every live ray of the tile, the exponents in a loop the compiler vectorises), and the
-// backward of that compositing to the per-Gaussian quantities (torch's autograd takes it
-// through the projection). OpenMP over tiles.
+// Native LiDAR rendering for omnire's cpu rasterizer: the ``lidar`` capability of
+// omnire/rasterization.py, with the geometry of omnire/lidarprojection.py.
+//
+// lidar_project: each Gaussian to the sensor's sphere (computed in double): its direction
+// (azimuth, elevation, degrees), the inverse angular covariance (conic a, b, c), the range
+// quadric (quad xx xy xz yy yz zz, lin x y z: t* = d.lin / d^T quad d), its centre distance
+// and angular extents; lidar_project_backward its gradient to means, quaternions, scales
+// (one pass over the Gaussians where torch would take dozens of small operations).
+// lidar_forward: bin Gaussians (in the caller's order of centre distance) and rays into
+// tiles of the sphere and composite the rays of each tile over its list (each Gaussian of
+// the list against every live ray of the tile, the exponents in a loop the compiler
+// vectorises); lidar_backward: that compositing's gradient to the projected quantities.
+// OpenMP over tiles and over Gaussians.
 //
 // Two instantiations: float (training) and double (gradient checks). The forward and the
 // backward take every skip / stop decision with the same operations (compiled with
@@ -346,6 +349,254 @@ void composite_backward(const Lists& gl, const Lists& rl, const S* rec, const S*
   }
 }
 
+// ---------------------------------------------------------------------------------------
+// Projection to the sensor's sphere (the numbers of omnire/lidarprojection.py, computed in
+// double) and its backward to means, quaternions and scales.
+
+constexpr double DEG = 180.0 / 3.14159265358979323846;
+constexpr double POLE_SIN = 0.017452406437283512;  // sin(1 degree): POLE_MARGIN_DEG
+constexpr double MIN_SCALE = 1e-12;                  // lidarprojection.py MIN_SCALE
+constexpr double QUAT_EPS2 = 1e-24;                  // omnire.geometry.normalize_quats
+
+// Forward-mode value with its derivatives along the three sensor axes: J(m)'s derivative.
+struct Dual3 {
+  double v, d[3];
+};
+inline Dual3 operator+(Dual3 a, Dual3 b) { return {a.v + b.v, {a.d[0] + b.d[0], a.d[1] + b.d[1], a.d[2] + b.d[2]}}; }
+inline Dual3 operator*(Dual3 a, Dual3 b) {
+  return {a.v * b.v, {a.d[0] * b.v + a.v * b.d[0], a.d[1] * b.v + a.v * b.d[1], a.d[2] * b.v + a.v * b.d[2]}};
+}
+inline Dual3 operator*(double s, Dual3 a) { return {s * a.v, {s * a.d[0], s * a.d[1], s * a.d[2]}}; }
+inline Dual3 operator/(Dual3 a, Dual3 b) {
+  const double q = a.v / b.v;
+  return {q, {(a.d[0] - q * b.d[0]) / b.v, (a.d[1] - q * b.d[1]) / b.v, (a.d[2] - q * b.d[2]) / b.v}};
+}
+inline Dual3 sqrt(Dual3 a) {
+  const double r = std::sqrt(a.v);
+  return {r, {a.d[0] / (2 * r), a.d[1] / (2 * r), a.d[2] / (2 * r)}};
+}
+using std::sqrt;
+
+// Jacobian (2, 3) of (azimuth, elevation) in degrees at the sensor-frame point m, row-major.
+template <typename T>
+inline void spherical_jacobian(const T m[3], T J[6]) {
+  const T x = m[0], y = m[1], z = m[2];
+  const T r2 = x * x + y * y;
+  const T R2 = r2 + z * z;
+  const T r = sqrt(r2);
+  const T Rr = R2 * r;
+  J[0] = (-DEG) * (y / r2);
+  J[1] = DEG * (x / r2);
+  J[2] = 0.0 * x;
+  J[3] = (-DEG) * (x * z / Rr);
+  J[4] = (-DEG) * (y * z / Rr);
+  J[5] = DEG * (r / R2);
+}
+
+// Everything the forward computes for one Gaussian, kept for its backward.
+struct Proj {
+  double m[3], qn[4], qnorm, rot[9], J[6], JM[6], a, b, c, det, sp[3], w[3], Q[9];
+  int smin;  // first index of the smallest clamped scale
+  bool visible, ok, unit;
+};
+
+inline void quat_rotmat(const double q[4], double R[9]) {
+  const double w = q[0], x = q[1], y = q[2], z = q[3];
+  R[0] = 1 - 2 * (y * y + z * z); R[1] = 2 * (x * y - w * z); R[2] = 2 * (x * z + w * y);
+  R[3] = 2 * (x * y + w * z); R[4] = 1 - 2 * (x * x + z * z); R[5] = 2 * (y * z - w * x);
+  R[6] = 2 * (x * z - w * y); R[7] = 2 * (y * z + w * x); R[8] = 1 - 2 * (x * x + y * y);
+}
+
+// pose: (4, 4) sensor_to_world, row-major doubles.
+template <typename S>
+inline void project_one(const S* mean, const S* quat, const S* scale, double opac, const double* pose, double eps,
+                        double rmin, double rmax, Proj& p) {
+  for (int i = 0; i < 3; ++i) {  // m = Rs^T (mu - t)
+    p.m[i] = 0;
+    for (int k = 0; k < 3; ++k) p.m[i] += pose[4 * k + i] * (double(mean[k]) - pose[4 * k + 3]);
+  }
+  const double x = p.m[0], y = p.m[1], z = p.m[2];
+  const double r2 = x * x + y * y, rho = std::sqrt(r2 + z * z), r = std::sqrt(r2);
+  p.visible = rho > rmin && rho < rmax && r > rho * POLE_SIN && opac >= ALPHA_MIN;
+  double norm2 = 0;
+  for (int k = 0; k < 4; ++k) norm2 += double(quat[k]) * double(quat[k]);
+  p.unit = norm2 >= QUAT_EPS2;
+  p.qnorm = p.unit ? std::sqrt(norm2) : 1.0;
+  for (int k = 0; k < 4; ++k) p.qn[k] = p.unit ? double(quat[k]) / p.qnorm : (k == 0 ? 1.0 : 0.0);
+  double Rq[9];
+  quat_rotmat(p.qn, Rq);
+  for (int i = 0; i < 3; ++i)  // rot = Rs^T Rq
+    for (int j = 0; j < 3; ++j) {
+      double v = 0;
+      for (int k = 0; k < 3; ++k) v += pose[4 * k + i] * Rq[3 * k + j];
+      p.rot[3 * i + j] = v;
+    }
+  const double stand_in[3] = {1.0, 0.0, 0.0};  // undrawn Gaussians: a harmless point (as the torch code)
+  spherical_jacobian(p.visible ? p.m : stand_in, p.J);
+  for (int a = 0; a < 2; ++a)  // JM = J rot diag(s)
+    for (int j = 0; j < 3; ++j) {
+      double v = 0;
+      for (int i = 0; i < 3; ++i) v += p.J[3 * a + i] * p.rot[3 * i + j];
+      p.JM[3 * a + j] = v * double(scale[j]);
+    }
+  p.a = p.JM[0] * p.JM[0] + p.JM[1] * p.JM[1] + p.JM[2] * p.JM[2] + eps;
+  p.b = p.JM[0] * p.JM[3] + p.JM[1] * p.JM[4] + p.JM[2] * p.JM[5];
+  p.c = p.JM[3] * p.JM[3] + p.JM[4] * p.JM[4] + p.JM[5] * p.JM[5] + eps;
+  p.det = p.a * p.c - p.b * p.b;
+  p.ok = p.visible && p.det > 0;
+  p.smin = 0;
+  for (int k = 0; k < 3; ++k) {
+    p.sp[k] = std::max(double(scale[k]), MIN_SCALE);
+    if (p.sp[k] < p.sp[p.smin]) p.smin = k;
+  }
+  for (int k = 0; k < 3; ++k) {
+    const double t = p.sp[p.smin] / p.sp[k];
+    p.w[k] = t * t;
+  }
+  for (int i = 0; i < 3; ++i)  // Q = rot diag(w) rot^T
+    for (int j = 0; j < 3; ++j) {
+      double v = 0;
+      for (int k = 0; k < 3; ++k) v += p.rot[3 * i + k] * p.w[k] * p.rot[3 * j + k];
+      p.Q[3 * i + j] = v;
+    }
+}
+
+template <typename S>
+void project_all(int64_t N, const S* means, const S* quats, const S* scales, const S* opac, const double* pose,
+                 double eps, double rmin, double rmax, S* az, S* el, S* conics, S* quad, S* lin, S* distance,
+                 S* extent, bool* visible, int nthreads) {
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+  for (int64_t i = 0; i < N; ++i) {
+    Proj p;
+    project_one(means + 3 * i, quats + 4 * i, scales + 3 * i, double(opac[i]), pose, eps, rmin, rmax, p);
+    const double* m = p.visible ? p.m : nullptr;
+    const double x = m ? m[0] : 1.0, y = m ? m[1] : 0.0, z = m ? m[2] : 0.0;
+    const double r = std::sqrt(x * x + y * y);
+    double a = DEG * std::atan2(y, x);
+    if (a < 0) a += 360.0;
+    az[i] = S(a);
+    el[i] = S(DEG * std::atan2(z, r));
+    const double det = p.ok ? p.det : 1.0;
+    conics[3 * i] = S(p.c / det);
+    conics[3 * i + 1] = S(-p.b / det);
+    conics[3 * i + 2] = S(p.a / det);
+    const int upper[6] = {0, 1, 2, 4, 5, 8};
+    for (int k = 0; k < 6; ++k) quad[6 * i + k] = S(p.Q[upper[k]]);
+    for (int k = 0; k < 3; ++k) lin[3 * i + k] = S(p.Q[3 * k] * x + p.Q[3 * k + 1] * y + p.Q[3 * k + 2] * z);
+    distance[i] = S(std::sqrt(x * x + y * y + z * z));
+    const double level = 2.0 * std::log(std::max(double(opac[i]) / ALPHA_MIN, 1.0));
+    for (int k = 0; k < 2; ++k) {
+      double e = 1.01 * std::sqrt(level * std::max(k == 0 ? p.a : p.c, 0.0)) + 1e-3;  // EXTENT_MARGIN
+      if (!std::isfinite(e) || e > 360.0) e = 360.0;
+      extent[2 * i + k] = S(p.ok ? e : 0.0);
+    }
+    visible[i] = p.ok;
+  }
+}
+
+template <typename S>
+void project_backward_all(int64_t N, const S* means, const S* quats, const S* scales, const S* opac,
+                          const double* pose, double eps, double rmin, double rmax, const S* g_az, const S* g_el,
+                          const S* g_con, const S* g_quad, const S* g_lin, S* g_means, S* g_quats, S* g_scales,
+                          int nthreads) {
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+  for (int64_t i = 0; i < N; ++i) {
+    Proj p;
+    project_one(means + 3 * i, quats + 4 * i, scales + 3 * i, double(opac[i]), pose, eps, rmin, rmax, p);
+    double gm[3] = {0, 0, 0}, grot[9] = {0}, gs[3] = {0, 0, 0};
+    if (p.visible) {
+      // conic = (c, -b, a) / det
+      double ga = 0, gb = 0, gc = 0;
+      if (p.ok) {
+        const double g0 = g_con[3 * i], g1 = g_con[3 * i + 1], g2 = g_con[3 * i + 2];
+        const double id = 1.0 / p.det, id2 = id * id, a = p.a, b = p.b, c = p.c;
+        ga = -g0 * c * c * id2 + g1 * b * c * id2 + g2 * (id - a * c * id2);
+        gb = 2 * g0 * b * c * id2 + g1 * (-id - 2 * b * b * id2) + 2 * g2 * a * b * id2;
+        gc = g0 * (id - a * c * id2) + g1 * a * b * id2 - g2 * a * a * id2;
+      } else {  // det held at 1: conic = (c, -b, a)
+        ga = g_con[3 * i + 2];
+        gb = -double(g_con[3 * i + 1]);
+        gc = g_con[3 * i];
+      }
+      // cov = JM JM^T (a, b, c its upper entries)
+      double gJM[6];
+      for (int j = 0; j < 3; ++j) {
+        gJM[j] = 2 * ga * p.JM[j] + gb * p.JM[3 + j];
+        gJM[3 + j] = gb * p.JM[j] + 2 * gc * p.JM[3 + j];
+      }
+      // JM = J rot diag(s)
+      double gJ[6] = {0};
+      for (int a = 0; a < 2; ++a)
+        for (int j = 0; j < 3; ++j) {
+          const double gmj = gJM[3 * a + j];
+          double jr = 0;
+          for (int k = 0; k < 3; ++k) {
+            gJ[3 * a + k] += gmj * double(scales[3 * i + j]) * p.rot[3 * k + j];
+            grot[3 * k + j] += p.J[3 * a + k] * gmj * double(scales[3 * i + j]);
+            jr += p.J[3 * a + k] * p.rot[3 * k + j];
+          }
+          gs[j] += gmj * jr;
+        }
+      // J(m) and (azimuth, elevation)(m), whose Jacobian is J itself
+      Dual3 md[3];
+      for (int k = 0; k < 3; ++k) md[k] = {p.m[k], {k == 0 ? 1.0 : 0.0, k == 1 ? 1.0 : 0.0, k == 2 ? 1.0 : 0.0}};
+      Dual3 Jd[6];
+      spherical_jacobian(md, Jd);
+      for (int k = 0; k < 3; ++k) {
+        gm[k] += double(g_az[i]) * p.J[k] + double(g_el[i]) * p.J[3 + k];
+        for (int e = 0; e < 6; ++e) gm[k] += gJ[e] * Jd[e].d[k];
+      }
+    }
+    // lin = Q m and quad = Q's upper entries; Q = rot diag(w) rot^T, w = (s_min / s)^2
+    const double* mm = p.visible ? p.m : nullptr;
+    const double mx[3] = {mm ? mm[0] : 1.0, mm ? mm[1] : 0.0, mm ? mm[2] : 0.0};
+    double gQ[9];
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c) gQ[3 * r + c] = double(g_lin[3 * i + r]) * mx[c];
+    const int upper[6] = {0, 1, 2, 4, 5, 8};
+    for (int k = 0; k < 6; ++k) gQ[upper[k]] += double(g_quad[6 * i + k]);
+    if (p.visible)
+      for (int k = 0; k < 3; ++k)
+        for (int r = 0; r < 3; ++r) gm[k] += double(g_lin[3 * i + r]) * p.Q[3 * r + k];
+    double gw[3] = {0, 0, 0};
+    for (int r = 0; r < 3; ++r)
+      for (int k = 0; k < 3; ++k) {
+        double sym = 0;  // ((gQ + gQ^T) rot)_rk
+        for (int j = 0; j < 3; ++j) sym += (gQ[3 * r + j] + gQ[3 * j + r]) * p.rot[3 * j + k];
+        grot[3 * r + k] += sym * p.w[k];
+        for (int j = 0; j < 3; ++j) gw[k] += gQ[3 * r + j] * p.rot[3 * r + k] * p.rot[3 * j + k];
+      }
+    double gsp[3] = {0, 0, 0}, gmin = 0;
+    for (int k = 0; k < 3; ++k) {
+      gsp[k] += gw[k] * (-2.0 * p.w[k] / p.sp[k]);
+      gmin += gw[k] * 2.0 * p.w[k] / p.sp[p.smin];
+    }
+    gsp[p.smin] += gmin;
+    for (int k = 0; k < 3; ++k)
+      if (double(scales[3 * i + k]) >= MIN_SCALE) gs[k] += gsp[k];
+    // rot = Rs^T Rq, Rq = R(qn), qn = q / |q|
+    double gR[9];
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c) {
+        double v = 0;
+        for (int k = 0; k < 3; ++k) v += pose[4 * r + k] * grot[3 * k + c];
+        gR[3 * r + c] = v;
+      }
+    const double w = p.qn[0], x = p.qn[1], y = p.qn[2], z = p.qn[3];
+    const double gqn[4] = {
+        2 * (-z * gR[1] + y * gR[2] + z * gR[3] - x * gR[5] - y * gR[6] + x * gR[7]),
+        2 * (y * gR[1] + z * gR[2] + y * gR[3] - 2 * x * gR[4] - w * gR[5] + z * gR[6] + w * gR[7] - 2 * x * gR[8]),
+        2 * (-2 * y * gR[0] + x * gR[1] + w * gR[2] + x * gR[3] + z * gR[5] - w * gR[6] + z * gR[7] - 2 * y * gR[8]),
+        2 * (-2 * z * gR[0] - w * gR[1] + x * gR[2] + w * gR[3] - 2 * z * gR[4] + y * gR[5] + x * gR[6] + y * gR[7])};
+    const double dot = w * gqn[0] + x * gqn[1] + y * gqn[2] + z * gqn[3];
+    for (int k = 0; k < 4; ++k) g_quats[4 * i + k] = S(p.unit ? (gqn[k] - p.qn[k] * dot) / p.qnorm : 0.0);
+    for (int k = 0; k < 3; ++k) {  // m = Rs^T (mu - t): dL/dmu = Rs dL/dm
+      g_means[3 * i + k] = S(pose[4 * k] * gm[0] + pose[4 * k + 1] * gm[1] + pose[4 * k + 2] * gm[2]);
+      g_scales[3 * i + k] = S(gs[k]);
+    }
+  }
+}
+
 }  // namespace
 
 // Forward. Inputs (S = float32 or float64, N Gaussians, F features, R rays):
@@ -430,7 +681,68 @@ at::Tensor lidar_backward(at::Tensor rec, at::Tensor feat, at::Tensor goff, at::
   return grads;
 }
 
+// Projection of N Gaussians (means (N,3), quats (N,4), scales (N,3), opacities (N,), all S)
+// to the sphere of the sensor at ``pose`` (4,4) float64. Returns [azimuth, elevation (N,),
+// conics (N,3), quad (N,6), lin (N,3), distance (N,), extent (N,2), visible (N,) bool], the
+// quantities of omnire/lidarprojection.py's SphericalSplats (computed in double).
+std::vector<at::Tensor> lidar_project(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor opac,
+                                      at::Tensor pose, double eps, double min_range, double max_range,
+                                      int64_t nthreads) {
+  const auto st = means.scalar_type();
+  TORCH_CHECK(st == at::kFloat || st == at::kDouble, "means must be float32 or float64");
+  const int64_t N = means.size(0);
+  check(means, st, "means", N, 3);
+  check(quats, st, "quats", N, 4);
+  check(scales, st, "scales", N, 3);
+  check(opac, st, "opacities", N, -1);
+  check(pose, at::kDouble, "pose", 4, 4);
+  auto opts = means.options();
+  at::Tensor az = at::empty({N}, opts), el = at::empty({N}, opts), con = at::empty({N, 3}, opts);
+  at::Tensor quad = at::empty({N, 6}, opts), lin = at::empty({N, 3}, opts), dist = at::empty({N}, opts);
+  at::Tensor ext = at::empty({N, 2}, opts), vis = at::empty({N}, opts.dtype(at::kBool));
+  const int nt = int(std::max<int64_t>(1, nthreads));
+  AT_DISPATCH_FLOATING_TYPES(st, "lidar_project", [&] {
+    project_all<scalar_t>(N, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(),
+                          opac.data_ptr<scalar_t>(), pose.data_ptr<double>(), eps, min_range, max_range,
+                          az.data_ptr<scalar_t>(), el.data_ptr<scalar_t>(), con.data_ptr<scalar_t>(),
+                          quad.data_ptr<scalar_t>(), lin.data_ptr<scalar_t>(), dist.data_ptr<scalar_t>(),
+                          ext.data_ptr<scalar_t>(), vis.data_ptr<bool>(), nt);
+  });
+  return {az, el, con, quad, lin, dist, ext, vis};
+}
+
+// Backward of lidar_project: dL/d(azimuth, elevation, conics, quad, lin) -> dL/d(means, quats, scales).
+std::vector<at::Tensor> lidar_project_backward(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor opac,
+                                               at::Tensor pose, double eps, double min_range, double max_range,
+                                               at::Tensor g_az, at::Tensor g_el, at::Tensor g_con, at::Tensor g_quad,
+                                               at::Tensor g_lin, int64_t nthreads) {
+  const auto st = means.scalar_type();
+  const int64_t N = means.size(0);
+  check(means, st, "means", N, 3);
+  check(quats, st, "quats", N, 4);
+  check(scales, st, "scales", N, 3);
+  check(opac, st, "opacities", N, -1);
+  check(pose, at::kDouble, "pose", 4, 4);
+  check(g_az, st, "azimuth gradient", N, -1);
+  check(g_el, st, "elevation gradient", N, -1);
+  check(g_con, st, "conics gradient", N, 3);
+  check(g_quad, st, "quad gradient", N, 6);
+  check(g_lin, st, "lin gradient", N, 3);
+  at::Tensor gm = at::empty_like(means), gq = at::empty_like(quats), gs = at::empty_like(scales);
+  const int nt = int(std::max<int64_t>(1, nthreads));
+  AT_DISPATCH_FLOATING_TYPES(st, "lidar_project_backward", [&] {
+    project_backward_all<scalar_t>(N, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                                   scales.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), pose.data_ptr<double>(),
+                                   eps, min_range, max_range, g_az.data_ptr<scalar_t>(), g_el.data_ptr<scalar_t>(),
+                                   g_con.data_ptr<scalar_t>(), g_quad.data_ptr<scalar_t>(), g_lin.data_ptr<scalar_t>(),
+                                   gm.data_ptr<scalar_t>(), gq.data_ptr<scalar_t>(), gs.data_ptr<scalar_t>(), nt);
+  });
+  return {gm, gq, gs};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("lidar_project", &lidar_project, "projection of Gaussians to the sensor's sphere (CPU)");
+  m.def("lidar_project_backward", &lidar_project_backward, "backward of lidar_project (CPU)");
   m.def("lidar_forward", &lidar_forward, "LiDAR compositing forward over tiles of the sphere (CPU)");
   m.def("lidar_backward", &lidar_backward, "LiDAR compositing backward to the projected Gaussians (CPU)");
 }
