@@ -1,7 +1,7 @@
 """The ``lidar`` capability of the cpu rasterizer, natively (csrc/lidar.cpp): the projection
 to the sensor's sphere (the numbers of :func:`omnire.api.project_lidar`, in double) and its
-backward, then the binning and compositing of the rays over tiles of the sphere and their
-backward (OpenMP). float64 inputs run the double-precision kernels (gradient checks);
+backward, then the binning of rays and Gaussians into tiles of the sphere (the tiling of
+:class:`omnire.api.SphereTiles`) and the compositing with its backward (OpenMP). float64 inputs run the double-precision kernels (gradient checks);
 anything else runs in float32.
 """
 from __future__ import annotations
@@ -14,10 +14,8 @@ from omnire.api import (
     LidarSettings,
     RasterInputError,
     SphereTiles,
-    SphericalSplats,
     Splats,
     check_lidar_inputs,
-    ray_directions,
 )
 
 from ._build import lidar_extension
@@ -54,16 +52,17 @@ class _LidarFn(torch.autograd.Function):
     """(azimuth (N,), elevation (N,), opacities (N,), conics (N,3), quad (N,6), lin (N,3),
     features (N,F)) -> (features (R,F), range sum (R,), alpha (R,), median range (R,)).
 
-    ``meta``: the drawn Gaussians by centre distance (n,), their tile boxes (N,4), the rays'
-    azimuths in [0, 360) (R,), elevations (R,), directions (R,3) and tiles (R,), the tiling's
-    columns and tile count, min_range, max_range, threads. The rays take no gradient."""
+    ``meta``: the projection's distance (N,), extent (N,2) and visible (N,), the rays'
+    azimuths and elevations (R,), the tiling (:class:`omnire.api.SphereTiles`), min_range,
+    max_range, threads. The rays take no gradient."""
 
     @staticmethod
     def forward(ctx, az, el, opac, conics, quad, lin, feat, meta):
-        order, box, ray_az, ray_el, dirs, ray_tile, columns, tiles, rmin, rmax, nthreads = meta
-        o_feat, o_rsum, o_alpha, o_median, rec, goff, gids, roff, rids = lidar_extension().lidar_forward(
-            az, el, opac, conics, quad, lin, feat, order, box, ray_az, ray_el, dirs, ray_tile, columns, tiles, rmin,
-            rmax, nthreads)
+        distance, extent, visible, ray_az, ray_el, tiles, rmin, rmax, nthreads = meta
+        (o_feat, o_rsum, o_alpha, o_median, rec, goff, gids, roff, rids, ray_az,
+         dirs) = lidar_extension().lidar_forward(
+            az, el, opac, conics, quad, lin, feat, distance, extent, visible, ray_az, ray_el, tiles.columns,
+            tiles.rows, tiles.column_deg, tiles.row_deg, tiles.first_elevation, rmin, rmax, nthreads)
         ctx.save_for_backward(rec, feat, goff, gids, roff, rids, ray_az, ray_el, dirs, o_feat, o_rsum, o_alpha)
         ctx.meta = (rmin, rmax, nthreads)
         return o_feat, o_rsum, o_alpha, o_median
@@ -92,26 +91,14 @@ def rasterize_lidar(splats: Splats, rays: LidarRays, settings: LidarSettings, nu
     if any(t.device.type != "cpu" for t in tensors):
         raise RasterInputError("the cpu rasterizer needs CPU tensors")
     dtype = torch.float64 if splats.means.dtype == torch.float64 else torch.float32
-    splats = Splats(*(t.to(dtype) for t in (splats.means, splats.quats, splats.scales, splats.opacities,
-                                             splats.colors)))
+    means, quats, scales, opacities, colors = (t.to(dtype).contiguous() for t in (
+        splats.means, splats.quats, splats.scales, splats.opacities, splats.colors))
     pose = rays.sensor_to_world.detach().to(torch.float64).contiguous()
     az, el, conics, quad, lin, distance, extent, visible = _ProjectFn.apply(
-        splats.means.contiguous(), splats.quats.contiguous(), splats.scales.contiguous(),
-        (splats.opacities.detach().contiguous(), pose, float(settings.eps_deg2), float(rays.min_range),
-         float(rays.max_range), int(num_threads)))
-    proj = SphericalSplats(az, el, conics, splats.opacities, quad, lin, distance, extent, visible)
-    tiles = SphereTiles.for_rays(rays)
-    with torch.no_grad():
-        drawn = torch.nonzero(proj.visible).flatten()
-        order = drawn[torch.argsort(proj.distance[drawn], stable=True)].contiguous()
-        box = tiles.boxes(proj).contiguous()
-        ray_az = torch.remainder(rays.azimuth_deg.detach().to(torch.float64), 360.0).to(dtype)
-        ray_el = rays.elevation_deg.detach().to(dtype)
-        dirs = ray_directions(ray_az, ray_el).contiguous()
-        ray_tile = tiles.of_rays(rays).contiguous()
-    meta = (order, box, ray_az.contiguous(), ray_el.contiguous(), dirs, ray_tile, tiles.columns, tiles.count,
-            float(rays.min_range), float(rays.max_range), int(num_threads))
-    feat, rsum, alpha, median = _LidarFn.apply(
-        proj.azimuth.contiguous(), proj.elevation.contiguous(), proj.opacities.contiguous(), proj.conics.contiguous(),
-        proj.quad.contiguous(), proj.lin.contiguous(), splats.colors.contiguous(), meta)
+        means, quats, scales, (opacities.detach(), pose, float(settings.eps_deg2), float(rays.min_range),
+                               float(rays.max_range), int(num_threads)))
+    meta = (distance, extent, visible, rays.azimuth_deg.detach().to(dtype).contiguous(),
+            rays.elevation_deg.detach().to(dtype).contiguous(), SphereTiles.for_rays(rays), float(rays.min_range),
+            float(rays.max_range), int(num_threads))
+    feat, rsum, alpha, median = _LidarFn.apply(az, el, opacities, conics, quad, lin, colors, meta)
     return LidarRenderOutput(range=rsum / alpha.clamp_min(1e-10), median_range=median, features=feat, alpha=alpha)

@@ -597,24 +597,76 @@ void project_backward_all(int64_t N, const S* means, const S* quats, const S* sc
   }
 }
 
+
+// The tiling of omnire.lidarprojection.SphereTiles: ``columns`` of ``column_deg`` from
+// azimuth 0, ``rows`` of ``row_deg`` from ``first`` (its of_rays and boxes, in double).
+struct Tiling {
+  int64_t columns, rows;
+  double column_deg, row_deg, first;
+  int64_t count() const { return columns * rows; }
+};
+
+// Rays: azimuth taken into [0, 360) (S), direction (S, (R, 3)), tile (R,).
+template <typename S>
+void prepare_rays(int64_t R, const S* az_in, const S* el_in, const Tiling& t, S* az, S* dirs, int64_t* tile,
+                  int nthreads) {
+  constexpr double RAD = 3.14159265358979323846 / 180.0;
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+  for (int64_t j = 0; j < R; ++j) {
+    double a = std::fmod(double(az_in[j]), 360.0);
+    if (a < 0) a += 360.0;
+    const double e = double(el_in[j]);
+    az[j] = S(a);
+    const double ar = double(az_in[j]) * RAD, er = e * RAD;
+    dirs[3 * j] = S(std::cos(er) * std::cos(ar));
+    dirs[3 * j + 1] = S(std::cos(er) * std::sin(ar));
+    dirs[3 * j + 2] = S(std::sin(er));
+    const int64_t col = std::min(std::max(int64_t(std::floor(a / t.column_deg)), int64_t(0)), t.columns - 1);
+    const int64_t row = std::min(std::max(int64_t(std::floor((e - t.first) / t.row_deg)), int64_t(0)), t.rows - 1);
+    tile[j] = row * t.columns + col;
+  }
+}
+
+// Tile box of each Gaussian (first column, columns, first row, rows; rows 0 when not drawn).
+template <typename S>
+void tile_boxes(int64_t N, const S* az, const S* el, const S* extent, const bool* visible, const Tiling& t,
+                int64_t* box, int nthreads) {
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+  for (int64_t i = 0; i < N; ++i) {
+    const double a = az[i], e = el[i], ea = extent[2 * i], ee = extent[2 * i + 1];
+    const int64_t c0 = int64_t(std::floor((a - ea) / t.column_deg));
+    const int64_t c1 = int64_t(std::floor((a + ea) / t.column_deg));
+    const int64_t r0 = std::max(int64_t(std::floor((e - ee - t.first) / t.row_deg)), int64_t(0));
+    const int64_t r1 = std::min(int64_t(std::floor((e + ee - t.first) / t.row_deg)), t.rows - 1);
+    int64_t* b = box + 4 * i;
+    b[0] = ((c0 % t.columns) + t.columns) % t.columns;
+    b[1] = std::min(c1 - c0 + 1, t.columns);
+    b[2] = std::min(r0, t.rows);
+    b[3] = visible[i] ? std::max(r1 - r0 + 1, int64_t(0)) : 0;
+  }
+}
+
 }  // namespace
 
-// Forward. Inputs (S = float32 or float64, N Gaussians, F features, R rays):
-//   azimuth, elevation, opacities (N,), conics (N,3), quad (N,6), lin (N,3), features (N,F);
-//   order (n,) int64 the drawn Gaussians by centre distance; box (N,4) int64 tile boxes;
-//   ray_azimuth in [0, 360), ray_elevation (R,), directions (R,3), ray_tile (R,) int64;
-//   columns, tiles of the tiling; min_range, max_range.
+// Forward. Inputs (S = float32 or float64, N Gaussians, F features, R rays): the outputs of
+// lidar_project (azimuth, elevation (N,), conics (N,3), quad (N,6), lin (N,3), distance
+// (N,), extent (N,2), visible (N,) bool), opacities (N,), features (N,F); the rays' azimuth
+// and elevation (R,) in degrees; the tiling (columns, rows, column_deg, row_deg, first
+// elevation); min_range, max_range.
 // Returns [features (R,F), range sum (R,), alpha (R,), median range (R,), records (N,REC),
-//          Gaussian tile offsets, Gaussian ids, ray tile offsets, ray ids].
+//          Gaussian tile offsets, Gaussian ids, ray tile offsets, ray ids, ray azimuths in
+//          [0, 360) (R,), ray directions (R,3)].
 std::vector<at::Tensor> lidar_forward(at::Tensor az, at::Tensor el, at::Tensor opac, at::Tensor conics,
-                                      at::Tensor quad, at::Tensor lin, at::Tensor feat, at::Tensor order,
-                                      at::Tensor box, at::Tensor ray_az, at::Tensor ray_el, at::Tensor dirs,
-                                      at::Tensor ray_tile, int64_t columns, int64_t tiles, double min_range,
-                                      double max_range, int64_t nthreads) {
+                                      at::Tensor quad, at::Tensor lin, at::Tensor feat, at::Tensor distance,
+                                      at::Tensor extent, at::Tensor visible, at::Tensor ray_az_in, at::Tensor ray_el,
+                                      int64_t columns, int64_t rows, double column_deg, double row_deg,
+                                      double first_elevation, double min_range, double max_range,
+                                      int64_t nthreads) {
   const auto st = az.scalar_type();
   TORCH_CHECK(st == at::kFloat || st == at::kDouble, "azimuth must be float32 or float64");
-  const int64_t N = az.size(0), R = ray_az.size(0), F = feat.dim() == 2 ? feat.size(1) : 0;
+  const int64_t N = az.size(0), R = ray_az_in.size(0), F = feat.dim() == 2 ? feat.size(1) : 0;
   TORCH_CHECK(F >= 1, "features must be (N, F) with F >= 1");
+  TORCH_CHECK(columns >= 1 && rows >= 1 && column_deg > 0 && row_deg > 0, "bad tiling");
   check(az, st, "azimuth", N, -1);
   check(el, st, "elevation", N, -1);
   check(opac, st, "opacities", N, -1);
@@ -622,20 +674,35 @@ std::vector<at::Tensor> lidar_forward(at::Tensor az, at::Tensor el, at::Tensor o
   check(quad, st, "quad", N, 6);
   check(lin, st, "lin", N, 3);
   check(feat, st, "features", N, F);
-  check(box, at::kLong, "box", N, 4);
-  check(order, at::kLong, "order", order.size(0), -1);
-  check(ray_az, st, "ray_azimuth", R, -1);
+  check(distance, st, "distance", N, -1);
+  check(extent, st, "extent", N, 2);
+  check(visible, at::kBool, "visible", N, -1);
+  check(ray_az_in, st, "ray_azimuth", R, -1);
   check(ray_el, st, "ray_elevation", R, -1);
-  check(dirs, st, "directions", R, 3);
-  check(ray_tile, at::kLong, "ray_tile", R, -1);
   TORCH_CHECK(N < (int64_t(1) << 31), "too many Gaussians for int32 ids");
   const int nt = int(std::max<int64_t>(1, nthreads));
-  Lists gl = bin_gaussians(order.data_ptr<int64_t>(), order.size(0), box.data_ptr<int64_t>(), columns, tiles);
-  Lists rl = bin_rays(ray_tile.data_ptr<int64_t>(), R, tiles);
+  const Tiling tiling{columns, rows, column_deg, row_deg, first_elevation};
   auto opts = az.options();
+  at::Tensor ray_az = at::empty({R}, opts), dirs = at::empty({R, 3}, opts);
+  at::Tensor ray_tile = at::empty({R}, at::kLong), box = at::empty({N, 4}, at::kLong);
   at::Tensor rec = at::empty({N, REC}, opts), o_feat = at::empty({R, F}, opts), o_rsum = at::empty({R}, opts);
   at::Tensor o_alpha = at::empty({R}, opts), o_median = at::empty({R}, opts);
+  Lists gl, rl;
   AT_DISPATCH_FLOATING_TYPES(st, "lidar_forward", [&] {
+    prepare_rays<scalar_t>(R, ray_az_in.data_ptr<scalar_t>(), ray_el.data_ptr<scalar_t>(), tiling,
+                           ray_az.data_ptr<scalar_t>(), dirs.data_ptr<scalar_t>(), ray_tile.data_ptr<int64_t>(), nt);
+    tile_boxes<scalar_t>(N, az.data_ptr<scalar_t>(), el.data_ptr<scalar_t>(), extent.data_ptr<scalar_t>(),
+                         visible.data_ptr<bool>(), tiling, box.data_ptr<int64_t>(), nt);
+    // the drawn Gaussians by centre distance (stable: equal distances in index order)
+    const scalar_t* d = distance.data_ptr<scalar_t>();
+    const bool* v = visible.data_ptr<bool>();
+    std::vector<int64_t> order;
+    order.reserve(N);
+    for (int64_t i = 0; i < N; ++i)
+      if (v[i]) order.push_back(i);
+    std::stable_sort(order.begin(), order.end(), [d](int64_t x, int64_t y) { return d[x] < d[y]; });
+    gl = bin_gaussians(order.data(), int64_t(order.size()), box.data_ptr<int64_t>(), columns, tiling.count());
+    rl = bin_rays(ray_tile.data_ptr<int64_t>(), R, tiling.count());
     pack_records<scalar_t>(N, az.data_ptr<scalar_t>(), el.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
                            opac.data_ptr<scalar_t>(), quad.data_ptr<scalar_t>(), lin.data_ptr<scalar_t>(),
                            rec.data_ptr<scalar_t>(), nt);
@@ -645,7 +712,7 @@ std::vector<at::Tensor> lidar_forward(at::Tensor az, at::Tensor el, at::Tensor o
                                 o_rsum.data_ptr<scalar_t>(), o_alpha.data_ptr<scalar_t>(),
                                 o_median.data_ptr<scalar_t>(), nt);
   });
-  return {o_feat, o_rsum, o_alpha, o_median, rec, gl.off, gl.items, rl.off, rl.items};
+  return {o_feat, o_rsum, o_alpha, o_median, rec, gl.off, gl.items, rl.off, rl.items, ray_az, dirs};
 }
 
 // Backward: dL/d(features, range sum, alpha, median range) per ray -> (N, G_F + F) float64
