@@ -748,13 +748,9 @@ at::Tensor lidar_backward(at::Tensor rec, at::Tensor feat, at::Tensor goff, at::
   return grads;
 }
 
-// Projection of N Gaussians (means (N,3), quats (N,4), scales (N,3), opacities (N,), all S)
-// to the sphere of the sensor at ``pose`` (4,4) float64. Returns [azimuth, elevation (N,),
-// conics (N,3), quad (N,6), lin (N,3), distance (N,), extent (N,2), visible (N,) bool], the
-// quantities of omnire/lidarprojection.py's SphericalSplats (computed in double).
-std::vector<at::Tensor> lidar_project(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor opac,
-                                      at::Tensor pose, double eps, double min_range, double max_range,
-                                      int64_t nthreads) {
+// The inputs of the projection: float32 or float64 Gaussians, a float64 pose. Returns N.
+static int64_t check_gaussians(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                               const at::Tensor& opac, const at::Tensor& pose) {
   const auto st = means.scalar_type();
   TORCH_CHECK(st == at::kFloat || st == at::kDouble, "means must be float32 or float64");
   const int64_t N = means.size(0);
@@ -763,6 +759,18 @@ std::vector<at::Tensor> lidar_project(at::Tensor means, at::Tensor quats, at::Te
   check(scales, st, "scales", N, 3);
   check(opac, st, "opacities", N, -1);
   check(pose, at::kDouble, "pose", 4, 4);
+  return N;
+}
+
+// Projection of N Gaussians (means (N,3), quats (N,4), scales (N,3), opacities (N,), all S)
+// to the sphere of the sensor at ``pose`` (4,4) float64. Returns [azimuth, elevation (N,),
+// conics (N,3), quad (N,6), lin (N,3), distance (N,), extent (N,2), visible (N,) bool], the
+// quantities of omnire/lidarprojection.py's SphericalSplats (computed in double).
+std::vector<at::Tensor> lidar_project(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor opac,
+                                      at::Tensor pose, double eps, double min_range, double max_range,
+                                      int64_t nthreads) {
+  const auto st = means.scalar_type();
+  const int64_t N = check_gaussians(means, quats, scales, opac, pose);
   auto opts = means.options();
   at::Tensor az = at::empty({N}, opts), el = at::empty({N}, opts), con = at::empty({N, 3}, opts);
   at::Tensor quad = at::empty({N, 6}, opts), lin = at::empty({N, 3}, opts), dist = at::empty({N}, opts);
@@ -784,12 +792,7 @@ std::vector<at::Tensor> lidar_project_backward(at::Tensor means, at::Tensor quat
                                                at::Tensor g_az, at::Tensor g_el, at::Tensor g_con, at::Tensor g_quad,
                                                at::Tensor g_lin, int64_t nthreads) {
   const auto st = means.scalar_type();
-  const int64_t N = means.size(0);
-  check(means, st, "means", N, 3);
-  check(quats, st, "quats", N, 4);
-  check(scales, st, "scales", N, 3);
-  check(opac, st, "opacities", N, -1);
-  check(pose, at::kDouble, "pose", 4, 4);
+  const int64_t N = check_gaussians(means, quats, scales, opac, pose);
   check(g_az, st, "azimuth gradient", N, -1);
   check(g_el, st, "elevation gradient", N, -1);
   check(g_con, st, "conics gradient", N, 3);
