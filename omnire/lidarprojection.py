@@ -1,6 +1,7 @@
 """Spherical projection of 3D Gaussians for LiDAR rendering: the geometry of the ``lidar``
-contract of :mod:`omnire.rasterization`, in PyTorch (differentiable), shared by every backend
-so that they composite the same per-Gaussian quantities.
+contract of :mod:`omnire.rasterization`, in PyTorch (differentiable), and the tiles of the
+sphere that bin rays and Gaussians. Backends composite these per-Gaussian quantities (the
+cpu one computes the same numbers natively, plugins/cpu-rasterizer/omnire_rasterizer_cpu/csrc/lidar.cpp).
 
 Sensor frame x forward, y left, z up; azimuth counter-clockwise from +x in degrees,
 elevation above the x-y plane in degrees (:func:`omnire.beams.spherical`). Shapes: N

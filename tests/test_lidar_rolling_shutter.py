@@ -42,7 +42,8 @@ def box_splats() -> Splats:
             quats.append(np.tile(q_of_axis[axis], (U.size, 1)))
     means = torch.tensor(np.concatenate(means))
     M = len(means)
-    return Splats(means, torch.tensor(np.concatenate(quats)), torch.tensor([[SIGMA, SIGMA, 1e-3]], dtype=torch.float64).repeat(M, 1),
+    scales = torch.tensor([[SIGMA, SIGMA, 1e-3]], dtype=torch.float64).repeat(M, 1)
+    return Splats(means, torch.tensor(np.concatenate(quats)), scales,
                   torch.full((M,), 0.9, dtype=torch.float64), torch.ones(M, 1, dtype=torch.float64))
 
 

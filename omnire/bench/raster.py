@@ -130,7 +130,8 @@ def make_lidar_scene(n: int, beams: int, azimuths: int, coverage: float = 8.0, s
     rng = torch.empty(n).uniform_(2.0, 60.0, generator=g)
     az = torch.deg2rad(torch.empty(n).uniform_(0.0, 360.0, generator=g))
     el = torch.deg2rad(torch.empty(n).uniform_(lo - 1.0, hi + 1.0, generator=g))
-    means = rng[:, None] * torch.stack([torch.cos(el) * torch.cos(az), torch.cos(el) * torch.sin(az), torch.sin(el)], -1)
+    means = rng[:, None] * torch.stack([torch.cos(el) * torch.cos(az), torch.cos(el) * torch.sin(az), torch.sin(el)],
+                                       -1)
     s_deg = math.sqrt(coverage * 360.0 * (hi - lo) / (n * math.pi * 4.0))
     scales = (rng * math.radians(s_deg))[:, None] * torch.exp(0.4 * torch.randn(n, 3, generator=g))
     grid_az = (torch.arange(azimuths, dtype=torch.float64) * (360.0 / azimuths)).repeat(beams)
@@ -326,7 +327,8 @@ def main(argv: list[str], plugins) -> int:
 
     what = "rasterize_lidar" if args.lidar else "rasterizers"
     table = Table(title=f"{what} on {device}, {threads} threads (medians of {args.repeats})")
-    for col in ("rasterizer", "Gaussians", "beams x azimuths" if args.lidar else "HxW", "forward ms", "backward ms", "fwd+bwd ms", "peak extra MB",
+    for col in ("rasterizer", "Gaussians", "beams x azimuths" if args.lidar else "HxW", "forward ms", "backward ms",
+                "fwd+bwd ms", "peak extra MB",
                 f"vs {reference}", "note"):
         table.add_column(col, justify="left" if col in ("rasterizer", "note", "HxW") else "right")
     for r in results:

@@ -1,8 +1,8 @@
 """The ``lidar`` capability of the cpu rasterizer, natively (csrc/lidar.cpp): the projection
 to the sensor's sphere (the numbers of :func:`omnire.api.project_lidar`, in double) and its
 backward, then the binning of rays and Gaussians into tiles of the sphere (the tiling of
-:class:`omnire.api.SphereTiles`) and the compositing with its backward (OpenMP). float64 inputs run the double-precision kernels (gradient checks);
-anything else runs in float32.
+:class:`omnire.api.SphereTiles`) and the compositing with its backward (OpenMP). float64
+inputs run the double-precision kernels (gradient checks); anything else runs in float32.
 """
 from __future__ import annotations
 
@@ -80,7 +80,8 @@ class _LidarFn(torch.autograd.Function):
             grad_or_zeros(g_feat, o_feat), grad_or_zeros(g_rsum, o_rsum), grad_or_zeros(g_alpha, o_alpha),
             grad_or_zeros(g_median, o_alpha), rmin, rmax, nthreads).to(rec.dtype)
         # slots: azimuth, elevation, conic a b c, opacity, quad (6), lin (3), features (F)
-        return grads[:, 0], grads[:, 1], grads[:, 5], grads[:, 2:5], grads[:, 6:12], grads[:, 12:15], grads[:, 15:], None
+        return (grads[:, 0], grads[:, 1], grads[:, 5], grads[:, 2:5], grads[:, 6:12], grads[:, 12:15], grads[:, 15:],
+                None)
 
 
 def rasterize_lidar(splats: Splats, rays: LidarRays, settings: LidarSettings, num_threads: int) -> LidarRenderOutput:
