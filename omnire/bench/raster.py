@@ -46,6 +46,7 @@ from typing import Optional
 import tyro
 
 from omnire.bench.machine import machine_info
+from omnire.errors import ConfigError
 from omnire.bench.memory import process_status_kib
 
 
@@ -85,9 +86,13 @@ class BenchArgs:
     lowest priority, the reference implementation)."""
 
 
-def parse_resolution(text: str) -> tuple[int, int]:
-    h, w = text.lower().split("x")
-    return int(h), int(w)
+def parse_resolution(text: str, option: str = "--resolutions") -> tuple[int, int]:
+    """``"HxW"`` -> (H, W), both positive; a ConfigError naming ``option`` otherwise."""
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() and int(p) > 0 for p in parts):
+        raise ConfigError(f"{option} {text!r}: expected two positive integers as HEIGHTxWIDTH (beams x azimuths "
+                          "with --lidar-rays), e.g. 160x240")
+    return int(parts[0]), int(parts[1])
 
 
 def make_scene(n: int, height: int, width: int, coverage: float = 8.0, seed: int = 0, device: str = "cpu"):
@@ -287,7 +292,8 @@ def main(argv: list[str], plugins) -> int:
         console.print("[red]no rasterizer to benchmark[/]")
         return 1
     grids = args.lidar_rays if args.lidar else args.resolutions
-    cases = sorted(((n, *parse_resolution(r)) for n in args.gaussians for r in grids),
+    option = "--lidar-rays" if args.lidar else "--resolutions"
+    cases = sorted(((n, *parse_resolution(r, option)) for n in args.gaussians for r in grids),
                    key=lambda c: (c[0] * c[1] * c[2], c[0]))
     results = []
     for name in chosen:
