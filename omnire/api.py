@@ -54,6 +54,7 @@ from omnire.geometry import (
     axis_angle_to_rotmat,
     axis_rotation,
     invert_se3,
+    lowpass_conics,
     quat_multiply,
     quat_to_rotmat,
     quat_to_se3,
@@ -71,6 +72,14 @@ from omnire.io.cache import user_cache_dir
 from omnire.io.documents import TomlDocument, load_json, load_toml, parse_json, parse_toml, read_text
 from omnire.io.images import write_png
 from omnire.io.outputs import OutputError, check_location, check_output_dir, staged_directory, staged_files, writing
+from omnire.lidarprojection import (
+    SphereTiles,
+    SphericalSplats,
+    max_response_range,
+    project_lidar,
+    ray_directions,
+    wrap_degrees,
+)
 from omnire.limits import (
     DEFAULT_FRAME_CAP,
     MAX_FPS,
@@ -134,12 +143,17 @@ from omnire.rasterization import (
     TRANSMITTANCE_MIN,
     FusedTrainingRasterizer,
     InferenceRasterizer,
+    LidarRasterizer,
+    LidarRays,
+    LidarRenderOutput,
+    LidarSettings,
     RasterInputError,
     Rasterizer,
     RasterSettings,
     RenderOutput,
     Splats,
     SsimRasterizer,
+    check_lidar_inputs,
     check_raster_inputs,
 )
 from omnire.registration import Lazy, LazyTargetError, lazy
@@ -155,6 +169,7 @@ from omnire.registry import (
     SceneWriterSpec,
     TrainObserverSpec,
 )
+from omnire.rollingshutter import SweepSector, spin_times, sweep_sectors
 from omnire.rowsparse import row_sparse
 from omnire.runconfig import TrainConfig, TrainerConfig, parse_device
 from omnire.rundir import CheckpointError, RunDirectory, RunDirectoryError, flatten_eval
