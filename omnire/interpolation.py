@@ -13,7 +13,8 @@ from typing import Union
 import numpy as np
 import torch
 
-from omnire.geometry import axis_angle_to_rotmat, rotmat_to_axis_angle, slerp_rotmats
+from omnire.geometry import (axis_angle_to_rotmat, quat_to_rotmat, rotmat_to_axis_angle, rotmat_to_quat, slerp_quats,
+                             slerp_rotmats)
 
 Array = Union[np.ndarray, torch.Tensor]
 
@@ -41,6 +42,18 @@ def bracket(known: np.ndarray, query: np.ndarray | float) -> tuple[np.ndarray, n
 def interpolate_rotations(R: Array, i0, i1, w) -> Array:
     """SLERP of rotations ``R`` (K, ..., 3, 3) between rows i0 (Q,) and i1 (Q,) with weights w
     (Q,): (Q, ..., 3, 3). Rows with w = 0 are returned exactly."""
+    if isinstance(R, np.ndarray) and R.ndim == 3:
+        # (K, 3, 3) queried many times (a LiDAR sweep: 1e5 returns between a few poses):
+        # each distinct bracket's quaternions once, then the same SLERP per query.
+        w = np.asarray(w, dtype=np.float64)
+        out = R[i0].copy()
+        mix = w > 0
+        if mix.any():
+            pair, inverse = np.unique(np.stack([i0[mix], i1[mix]], 1), axis=0, return_inverse=True)
+            inverse = inverse.reshape(-1)
+            q0, q1 = rotmat_to_quat(R[pair[:, 0]]), rotmat_to_quat(R[pair[:, 1]])
+            out[mix] = quat_to_rotmat(slerp_quats(q0[inverse], q1[inverse], np.ascontiguousarray(w[mix])))
+        return out
     R0, R1 = R[i0], R[i1]
     if isinstance(R, np.ndarray):
         w = np.asarray(w, dtype=np.float64)

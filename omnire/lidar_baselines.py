@@ -210,12 +210,14 @@ def sensor_returns(scene: SceneData, frame: int) -> tuple[np.ndarray, Optional[n
 
 
 def baseline_metrics(scene: SceneData, test_frames: Sequence[int], train_frames: Sequence[int],
-                     max_angle_deg: Optional[float] = None) -> dict[str, dict]:
+                     max_angle_deg: Optional[float] = None, mesh_sweeps: int = 4) -> dict[str, dict]:
     """The mean :func:`~omnire.lidar_metrics.lidar_metrics` of each baseline over the
     held-out sweeps of ``test_frames`` (frames without LiDAR are skipped), with the boxes of
     the scene at each frame: ``{"nearest_sweep": ..., "mesh": ...}`` (the mesh needs a beam
     model). ``max_angle_deg``: the nearest-sweep tolerance, by default
-    :func:`cell_tolerance_deg` of the beam model (required without one).
+    :func:`cell_tolerance_deg` of the beam model (required without one). ``mesh_sweeps``:
+    the mesh of a held-out sweep joins the training sweeps nearest to it in frame index
+    (docs/lidar.md says why not all of them); 0 joins every training sweep.
     """
     lidar = scene.lidar
     if lidar is None:
@@ -231,17 +233,23 @@ def baseline_metrics(scene: SceneData, test_frames: Sequence[int], train_frames:
     if not len(train) or not tests:
         raise SceneDataError(f"scene {scene.name}: no training or held-out frame with LiDAR")
     known, poses = lidar_track(lidar, scene.frame_timestamps)
-    mesh = None
-    if model is not None:
-        mesh = lidar_mesh((scene_sweep_rays(lidar, scene.frame_timestamps, int(f)) for f in train), model)
+    rays: dict[int, SweepRays] = {}
+
+    def rays_of(f: int) -> SweepRays:
+        if f not in rays:
+            rays[f] = scene_sweep_rays(lidar, scene.frame_timestamps, f)
+        return rays[f]
+
     scores: dict[str, list[dict]] = {"nearest_sweep": [], "mesh": []}
     for f in tests:
         target = scene_sweep_rays(lidar, scene.frame_timestamps, f)
         boxes = boxes_at(scene, f)
-        near = int(train[np.argmin(np.abs(train - f))])
-        points, value = sensor_returns(scene, near)
+        by_distance = train[np.argsort(np.abs(train - f), kind="stable")]  # ties: the earlier frame
+        points, value = sensor_returns(scene, int(by_distance[0]))
         rendered = nearest_sweep_render(points, value, target, known, poses, max_angle_deg)
         scores["nearest_sweep"].append(lidar_metrics(rendered, target, boxes))
-        if mesh is not None:
+        if model is not None:
+            chosen = by_distance[:mesh_sweeps] if mesh_sweeps > 0 else by_distance
+            mesh = lidar_mesh((rays_of(int(g)) for g in chosen), model)
             scores["mesh"].append(lidar_metrics(mesh_render(mesh, target), target, boxes))
     return {name: mean_metrics(values) for name, values in scores.items() if values}

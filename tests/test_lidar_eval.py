@@ -9,8 +9,8 @@ import torch
 
 from omnire.beams import spherical
 from omnire.data.scene import BeamModel, SceneDataError
-from omnire.geometry import axis_angle_to_rotmat, rigid, rot_z
-from omnire.interpolation import extend_poses, interpolate_poses
+from omnire.geometry import axis_angle_to_rotmat, rigid, rot_z, slerp_rotmats
+from omnire.interpolation import bracket, extend_poses, interpolate_poses, interpolate_rotations
 from omnire.lidar_baselines import (cell_tolerance_deg, lidar_mesh, mesh_render, nearest_sweep_render,
                                     sweep_triangles)
 from omnire.lidar_metrics import Box, RenderedSweep, lidar_metrics, mean_metrics
@@ -64,6 +64,21 @@ def test_extend_poses_continues_constant_velocity_and_turn_rate():
         np.testing.assert_allclose(P, exact, atol=1e-12)
     with pytest.raises(ValueError, match="K >= 2"):
         extend_poses(times[:1], poses[:1], 0.1)
+
+
+def test_interpolated_rotations_equal_the_per_query_slerp():
+    """The numpy path of interpolate_rotations converts each distinct bracket to quaternions
+    once; the result is the per-query SLERP exactly (known samples returned as they are)."""
+    rng = np.random.default_rng(5)
+    R = axis_angle_to_rotmat(rng.normal(size=(30, 3)))
+    known = np.cumsum(rng.uniform(0.05, 0.2, 30))
+    query = np.concatenate([rng.uniform(known[0] - 1, known[-1] + 1, 5000), known])
+    i0, i1, w = bracket(known, query)
+    slow = R[i0].copy()
+    mix = w > 0
+    slow[mix] = slerp_rotmats(R[i0][mix], R[i1][mix], np.ascontiguousarray(w[mix]))
+    assert np.array_equal(interpolate_rotations(R, i0, i1, w), slow)
+    assert np.array_equal(interpolate_rotations(R, i0, i1, w)[-30:], R)
 
 
 def test_first_hits_per_ray_origins_against_planes():
