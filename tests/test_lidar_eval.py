@@ -8,13 +8,13 @@ import pytest
 import torch
 
 from omnire.beams import spherical
-from omnire.data.scene import BeamModel, SceneDataError
+from omnire.data.scene import ActorTrack, BeamModel, LidarSweeps, SceneData, SceneDataError
 from omnire.geometry import axis_angle_to_rotmat, rigid, rot_z, slerp_rotmats
 from omnire.interpolation import bracket, extend_poses, interpolate_poses, interpolate_rotations
-from omnire.lidar_baselines import (cell_tolerance_deg, lidar_mesh, mesh_render, nearest_sweep_render,
-                                    sweep_triangles)
-from omnire.lidar_metrics import Box, RenderedSweep, lidar_metrics, mean_metrics
-from omnire.lidar_rays import sweep_rays
+from omnire.lidar_baselines import (baseline_metrics, cell_tolerance_deg, lidar_mesh, mesh_render,
+                                    nearest_sweep_render, sweep_triangles)
+from omnire.lidar_metrics import Box, RenderedSweep, boxes_at, lidar_metrics, mean_metrics
+from omnire.lidar_rays import scene_sweep_rays, sweep_rays
 from omnire.metrics import chamfer_distance
 from omnire.raycast import first_hits
 
@@ -266,3 +266,32 @@ def test_triangles_across_a_depth_jump_are_dropped():
     ranges = rays.range[tri]
     assert (ranges.max(1) - ranges.min(1) < 1e-9).all()  # none bridges 10 m and 40 m
     assert len(tri) == 2 * (MODEL.num_beams - 1) * (MODEL.num_azimuths - 8)  # all others kept
+
+
+def test_baseline_metrics_of_a_scene():
+    """baseline_metrics scores a held-out sweep against the nearest training sweep (the
+    earlier on a tie) and the mesh of the 4 nearest, with the scene's boxes at the frame."""
+    times, poses = track(speed=5.0, yaw_rate=0.1, k=7)
+    sweeps = [spinning_sweep(times, poses, f, drop=0.1, seed=f) for f in range(1, 7)]
+    pts = [s[0].astype(np.float32) for s in sweeps]
+    box = rigid(t=(25.0, 2.0, 0.0))  # a "vehicle" against the wall
+    scene = SceneData(
+        name="toy", cameras=[], frame_timestamps=times[1:], source_frames=np.arange(6),
+        train_frames=np.array([0, 1, 3, 4, 5]), test_frames=np.array([2]),
+        lidar=LidarSweeps(pts, poses[1:, :3, 3].copy(), intensity=[np.full(len(p), 0.5, np.float32) for p in pts],
+                          times=[s[1] for s in sweeps], beams=[s[2] for s in sweeps], sensor_to_world=poses[1:],
+                          beam_model=MODEL),
+        tracks=[ActorTrack("car", "Car", "vehicle", np.repeat(box[None], 6, 0), np.array([4.0, 2.0, 3.0]),
+                           np.ones(6, bool))])
+    got = baseline_metrics(scene, scene.test_frames, scene.train_frames)
+    target = scene_sweep_rays(scene.lidar, scene.frame_timestamps, 2)
+    boxes = boxes_at(scene, 2)
+    known, track_poses = extend_poses(times[1:], poses[1:], 0.2)
+    near = nearest_sweep_render(pts[1], scene.lidar.intensity[1], target, known, track_poses, cell_tolerance_deg(MODEL))
+    mesh = lidar_mesh([scene_sweep_rays(scene.lidar, scene.frame_timestamps, g) for g in (1, 3, 0, 4)], MODEL)
+    for name, rendered in (("nearest_sweep", near), ("mesh", mesh_render(mesh, target))):
+        expect = lidar_metrics(rendered, target, boxes)
+        assert got[name].keys() == expect.keys()
+        for key, value in expect.items():
+            assert got[name][key] == pytest.approx(value, nan_ok=True), (name, key)
+    assert got["mesh"]["vehicle_returns"] > 0 and got["mesh"]["median_abs_range_error"] < 0.05
