@@ -65,13 +65,25 @@ from omnire.geometry import (
     slerp_rotmats,
 )
 from omnire.hookspecs import hookimpl
-from omnire.interpolation import bracket, interpolate_poses, interpolate_rotations, interpolate_track
+from omnire.interpolation import bracket, extend_poses, interpolate_poses, interpolate_rotations, interpolate_track
 from omnire.io import safe_pickle
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
 from omnire.io.cache import user_cache_dir
 from omnire.io.documents import TomlDocument, load_json, load_toml, parse_json, parse_toml, read_text
 from omnire.io.images import write_png
 from omnire.io.outputs import OutputError, check_location, check_output_dir, staged_directory, staged_files, writing
+from omnire.lidar_baselines import (
+    LidarMesh,
+    baseline_metrics,
+    cell_tolerance_deg,
+    lidar_mesh,
+    mesh_render,
+    nearest_sweep_render,
+    sensor_returns,
+    sweep_triangles,
+)
+from omnire.lidar_metrics import BOX_CATEGORIES, Box, RenderedSweep, boxes_at, lidar_metrics, mean_metrics
+from omnire.lidar_rays import SweepRays, lidar_track, scene_sweep_rays, sweep_rays
 from omnire.lidarprojection import (
     SphereTiles,
     SphericalSplats,
@@ -156,6 +168,7 @@ from omnire.rasterization import (
     check_lidar_inputs,
     check_raster_inputs,
 )
+from omnire.raycast import RayHits, first_hits
 from omnire.registration import Lazy, LazyTargetError, lazy
 from omnire.registry import (
     CommandSpec,

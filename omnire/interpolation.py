@@ -13,7 +13,8 @@ from typing import Union
 import numpy as np
 import torch
 
-from omnire.geometry import slerp_rotmats
+from omnire.geometry import (axis_angle_to_rotmat, quat_to_rotmat, rotmat_to_axis_angle, rotmat_to_quat, slerp_quats,
+                             slerp_rotmats)
 
 Array = Union[np.ndarray, torch.Tensor]
 
@@ -41,6 +42,18 @@ def bracket(known: np.ndarray, query: np.ndarray | float) -> tuple[np.ndarray, n
 def interpolate_rotations(R: Array, i0, i1, w) -> Array:
     """SLERP of rotations ``R`` (K, ..., 3, 3) between rows i0 (Q,) and i1 (Q,) with weights w
     (Q,): (Q, ..., 3, 3). Rows with w = 0 are returned exactly."""
+    if isinstance(R, np.ndarray) and R.ndim == 3:
+        # (K, 3, 3) queried many times (a LiDAR sweep: 1e5 returns between a few poses):
+        # each distinct bracket's quaternions once, then the same SLERP per query.
+        w = np.asarray(w, dtype=np.float64)
+        out = R[i0].copy()
+        mix = w > 0
+        if mix.any():
+            pair, inverse = np.unique(np.stack([i0[mix], i1[mix]], 1), axis=0, return_inverse=True)
+            inverse = inverse.reshape(-1)
+            q0, q1 = rotmat_to_quat(R[pair[:, 0]]), rotmat_to_quat(R[pair[:, 1]])
+            out[mix] = quat_to_rotmat(slerp_quats(q0[inverse], q1[inverse], np.ascontiguousarray(w[mix])))
+        return out
     R0, R1 = R[i0], R[i1]
     if isinstance(R, np.ndarray):
         w = np.asarray(w, dtype=np.float64)
@@ -96,3 +109,30 @@ def interpolate_track(times: np.ndarray, poses: np.ndarray, present: np.ndarray,
     inside = (query >= t[0]) & (query <= t[-1]) & ((t[i1] - t[i0]) <= max_gap)
     out[inside] = interpolate_poses(t, P, query[inside])
     return out, inside
+
+
+def extend_poses(known: np.ndarray, poses: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """A pose track (K, 4, 4) at increasing ``known`` times (K,), K >= 2, with one sample
+    added ``margin`` seconds before the first and after the last, continuing the first and
+    last step at constant velocity and turn rate (translation linear, rotation by the same
+    axis-angle per second), so :func:`interpolate_poses` extrapolates instead of holding
+    (a LiDAR sweep of the last frame runs past the last pose). Returns (K + 2,) and
+    (K + 2, 4, 4)."""
+    known = np.asarray(known, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64)
+    if known.ndim != 1 or len(known) < 2 or poses.shape != (len(known), 4, 4) or not margin > 0:
+        raise ValueError(f"extend_poses: known {known.shape}, poses {poses.shape}, margin {margin}; expected "
+                         "(K,) with K >= 2, (K, 4, 4) and margin > 0")
+
+    def beyond(a: np.ndarray, b: np.ndarray, dt: float) -> np.ndarray:  # pose ``margin`` past b, moving a -> b in dt
+        s = margin / dt
+        out = np.eye(4)
+        turn = rotmat_to_axis_angle(b[:3, :3] @ a[:3, :3].T) * s  # world-frame turn, scaled
+        out[:3, :3] = axis_angle_to_rotmat(turn) @ b[:3, :3]
+        out[:3, 3] = b[:3, 3] + (b[:3, 3] - a[:3, 3]) * s
+        return out
+
+    first = beyond(poses[1], poses[0], known[1] - known[0])
+    last = beyond(poses[-2], poses[-1], known[-1] - known[-2])
+    return (np.concatenate([[known[0] - margin], known, [known[-1] + margin]]),
+            np.concatenate([first[None], poses, last[None]]))

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 from typing import Optional
 
+import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from omnire.losses import ssim_map
 
@@ -42,13 +44,12 @@ def depth_errors(rendered: torch.Tensor, pixels: torch.Tensor, lidar_depth: torc
     return float(((r - lidar_depth[keep]) ** 2).mean().sqrt()), int(keep.sum())
 
 
-def chamfer_distance(a: torch.Tensor, b: torch.Tensor, chunk: int = 4096) -> float:
+def chamfer_distance(a: "torch.Tensor | np.ndarray", b: "torch.Tensor | np.ndarray") -> float:
     """Two-way Chamfer distance (mean nearest-neighbour distance a->b plus b->a) of (N,3),
-    (M,3) point sets, in metres."""
+    (M,3) point sets (tensors or arrays), in metres; NaN when either is empty. Exact nearest
+    neighbours through k-d trees (a full LiDAR sweep holds ~10^5 points)."""
+    a, b = (x.detach().cpu().double().numpy() if isinstance(x, torch.Tensor) else np.asarray(x, np.float64)
+            for x in (a, b))
     if len(a) == 0 or len(b) == 0:
         return float("nan")
-
-    def one_way(x, y):
-        return torch.cat([torch.cdist(x[i : i + chunk], y).min(dim=1).values for i in range(0, len(x), chunk)]).mean()
-
-    return float(one_way(a, b) + one_way(b, a))
+    return float(cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())

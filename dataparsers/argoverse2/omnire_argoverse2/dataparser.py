@@ -161,20 +161,31 @@ class Argoverse2Dataparser(Dataparser):
 
 def load_lidar(paths: list[Path], frame_ns: np.ndarray, ego_to_world: np.ndarray, lidar_to_ego: np.ndarray,
                max_points: int = 0) -> LidarSweeps:
-    """Sweeps -> world points, one file at a time.
+    """Sweeps -> world points with their intensity (0-255 / 255) and time (the sweep's
+    timestamp plus the point's ``offset_ns``), one file at a time.
 
     Args:
         paths: F sweep files (ego frame at the sweep time); frame_ns: (F,) their timestamps.
         ego_to_world: (F, 4, 4) ego pose at each sweep time; lidar_to_ego: (4, 4) up_lidar
-            extrinsics (its position is each sweep's origin).
+            extrinsics (its pose at each sweep time is the sweep's ``sensor_to_world``).
         max_points: thin each sweep to at most this many points (seeded by its timestamp); 0 keeps all.
+    Two VLP-32C (``laser_number`` 0-31 and 32-63) each with its own pose make one sweep, so
+    no single beam model describes it: ``beams`` stays None.
     """
-    points = []
+    points, intensity, times = [], [], []
     for path, ts, M in zip(paths, frame_ns, ego_to_world):
-        xyz = thin_points(av2.read_sweep(path, xyz_only=True).xyz, max_points, ts)  # (N, 3) ego frame
+        sweep = av2.read_sweep(path)
+        keep = thin_points(np.arange(len(sweep.xyz)), max_points, ts)
+        xyz = sweep.xyz[keep]  # (N, 3) ego frame
         points.append((xyz @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
-    origins = (ego_to_world @ lidar_to_ego[None])[:, :3, 3]  # (F, 3)
-    return LidarSweeps(points=points, origins=origins)
+        value = np.asarray(sweep.intensity, dtype=np.float64)[keep]
+        if len(value) and not (value.min() >= 0 and value.max() <= 255):
+            raise Av2LogError(f"{path}: column intensity must hold numbers in 0..255")
+        intensity.append((value / 255.0).astype(np.float32))
+        times.append((int(ts) + np.asarray(sweep.offset_ns, dtype=np.int64)[keep]) * 1e-9)
+    sensor_to_world = ego_to_world @ lidar_to_ego[None]  # (F, 4, 4), axes x forward, y left, z up
+    return LidarSweeps(points=points, origins=sensor_to_world[:, :3, 3].copy(), intensity=intensity, times=times,
+                       sensor_to_world=sensor_to_world)
 
 
 def load_tracks(ann: av2.Annotations, path: Path, frame_ns: np.ndarray, ego: av2.EgoPoses, world: np.ndarray,

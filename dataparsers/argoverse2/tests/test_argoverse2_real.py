@@ -180,3 +180,20 @@ def test_test_split_has_no_annotations_and_log_a_no_calibration():
     assert av2.read_annotations(LOG_B_TEST) is None
     with pytest.raises(SceneDataError, match=r"calibration/intrinsics.feather: missing camera intrinsics"):
         av2.read_intrinsics(LOG_A)
+
+
+def test_reader_carries_intensity_times_and_sensor_pose():
+    """Each point keeps its intensity (0-255 / 255) and time (sweep time + offset_ns, within
+    one revolution of the sweep time); the sensor pose is up_lidar's at the sweep time."""
+    ns, paths, ego, city_ego, world = _frames(LOG_B)
+    up = av2.read_sensor_poses(LOG_B)[av2.LIDAR_SENSOR]
+    lidar = load_lidar(paths, ns, world[None] @ city_ego, up, max_points=5000)
+    for f, path in enumerate(paths):
+        sweep = av2.read_sweep(path)
+        assert len(lidar.points[f]) == 5000 and lidar.intensity[f].dtype == np.float32
+        assert set(np.round(lidar.intensity[f] * 255).astype(int)) <= set(sweep.intensity.astype(int))
+        dt = lidar.times[f] - ns[f] * 1e-9
+        assert dt.min() >= sweep.offset_ns.min() * 1e-9 - 1e-6 and dt.max() <= sweep.offset_ns.max() * 1e-9 + 1e-6
+        assert 0.05 < sweep.offset_ns.max() * 1e-9 - sweep.offset_ns.min() * 1e-9 < 0.12  # one revolution at 10 Hz
+        np.testing.assert_allclose(lidar.sensor_to_world[f], world @ city_ego[f] @ up, atol=1e-9)
+    assert lidar.beams is None and lidar.beam_model is None

@@ -25,6 +25,10 @@ Conventions (KITTI devkit readmes and "Vision meets Robotics: The KITTI Dataset"
   orientation (OpenCV axes) and P_i = K_i [I | t_i]: camera i sits at -t_i in rectified
   camera-0 coordinates, t_i = K_i^-1 P_i[:, 3] (the stereo baseline lives there). Images are
   rectified and undistorted: no distortion coefficients.
+- LiDAR: the Velodyne (HDL-64E) frame is x forward, y left, z up: ``sensor_to_world`` is it
+  at the frame's time; reflectance (0-1) is the intensity. The files hold no per-point time
+  and no laser index, and the HDL-64E's elevations are per-unit calibration values KITTI
+  does not publish, so ``times``, ``beams`` and ``beam_model`` are None.
 - Pixels: the devkit gives 2D boxes "in the image (0-based index)" in the same pixel
   coordinates P_i projects to, i.e. pixel centres at integers; K gets +0.5 px for omnire.
 - Labels: per row frame, track id, type, truncated, occluded, alpha, 2D box (4), dimensions
@@ -314,24 +318,30 @@ class KittiDataparser(Dataparser):
         if not folder.is_dir():
             raise KittiFileMissing(f"{folder}: missing Velodyne folder of sequence {seq} (--no-load-lidar skips LiDAR)")
         points: list[Optional[np.ndarray]] = []
-        origins = np.full((len(frames), 3), np.nan)
+        reflectance: list[Optional[np.ndarray]] = []
+        sensor_to_world = np.full((len(frames), 4, 4), np.nan)
         for j, f in enumerate(frames):
             path = folder / f"{f:06d}.bin"
             if not path.is_file():  # real gaps exist (training 0001 lacks frames 177-180)
                 points.append(None)
+                reflectance.append(None)
                 continue
             size = path.stat().st_size
             if size % 16:
                 raise KittiDataError(f"{path}: {size} bytes is not a whole number of 16-byte points "
                                      "(4 float32: x y z reflectance)")
-            xyz = np.fromfile(path, dtype="<f4").reshape(-1, 4)[:, :3].astype(np.float64)  # (N, 3) Velodyne frame
-            if not np.isfinite(xyz).all():
-                raise KittiDataError(f"{path}: non-finite x, y, z values")
-            xyz = thin_points(xyz, cfg.max_lidar_points_per_frame, f)  # keyed by the frame of the log
-            M = velo_to_world[j]
-            points.append((xyz @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
-            origins[j] = M[:3, 3]
-        return LidarSweeps(points=points, origins=origins)
+            rows = np.fromfile(path, dtype="<f4").reshape(-1, 4).astype(np.float64)  # (N, 4) Velodyne frame
+            if not np.isfinite(rows).all():
+                raise KittiDataError(f"{path}: non-finite values")
+            if len(rows) and not (0 <= rows[:, 3].min() and rows[:, 3].max() <= 1):
+                raise KittiDataError(f"{path}: column 4 (reflectance) must hold numbers in 0..1")
+            rows = thin_points(rows, cfg.max_lidar_points_per_frame, f)  # keyed by the frame of the log
+            M = velo_to_world[j]  # the Velodyne's axes are x forward, y left, z up already
+            points.append((rows[:, :3] @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
+            reflectance.append(rows[:, 3].astype(np.float32))
+            sensor_to_world[j] = M
+        return LidarSweeps(points=points, origins=sensor_to_world[:, :3, 3].copy(), intensity=reflectance,
+                           sensor_to_world=sensor_to_world)
 
     def _tracks(self, path: Path, n_log: int, frames: np.ndarray, times: np.ndarray,
                 rect_to_world: np.ndarray) -> list[ActorTrack]:

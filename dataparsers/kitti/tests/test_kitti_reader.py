@@ -169,6 +169,12 @@ def test_lidar_round_trip(synth):
         assert np.abs(s.lidar.points[f] - expected).max() < 5e-5
     origins = ref.lidar.origins @ synth.M[:3, :3].T + synth.M[:3, 3]
     assert np.allclose(s.lidar.origins, origins, atol=1e-6)
+    for f in s.lidar.available_frames():  # reflectance is the intensity; the pose is the Velodyne's
+        assert s.lidar.intensity[f].dtype == np.float32 and 0 <= s.lidar.intensity[f].min()
+        np.testing.assert_allclose(s.lidar.intensity[f], ref.lidar.intensity[f], atol=1e-6)
+        np.testing.assert_allclose(s.lidar.sensor_to_world[f][:3, 3], s.lidar.origins[f])
+        assert s.lidar.sensor_to_world[f][:3, 0] @ s.ego_poses[f][:3, 0] > 0.99  # Velodyne x = forward
+    assert s.lidar.times is None and s.lidar.beams is None
 
 
 def test_boxes_round_trip(synth):

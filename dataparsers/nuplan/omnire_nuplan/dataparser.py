@@ -284,19 +284,28 @@ class NuPlanDataparser(Dataparser):
         lidars = index(db.rows("lidar"))
         to_ego: dict[str, np.ndarray] = {}
         points: list[Optional[np.ndarray]] = []
+        intensity: list[Optional[np.ndarray]] = []
         origins = np.full((len(frame_pcs), 3), np.nan)
         missing = []
         for j, pc in enumerate(frame_pcs):
             path = blobs / pc.text("filename")
             if not path.is_file():  # a sweep not downloaded: a gap
                 points.append(None)
+                intensity.append(None)
                 missing.append(path)
                 continue
             rec = read_points(path)
             xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)  # (N, 3) LiDAR frame
             if not np.isfinite(xyz).all():
                 raise NuPlanDataError(f"{path}: non-finite x, y, z values (table lidar_pc row {pc.token})")
-            xyz = thin_points(xyz, cfg.max_lidar_points_per_frame, pc.integer("timestamp"))  # keyed by the sweep
+            has_value = rec.dtype.names is not None and "intensity" in rec.dtype.names
+            value = np.asarray(rec["intensity"], dtype=np.float64) if has_value else np.full(len(xyz), np.nan)
+            if has_value and not (np.isfinite(value).all() and (value >= 0).all()):
+                raise NuPlanDataError(f"{path}: field intensity must hold finite numbers >= 0 "
+                                      f"(table lidar_pc row {pc.token})")
+            keep = thin_points(np.arange(len(xyz)), cfg.max_lidar_points_per_frame, pc.integer("timestamp"))  # keyed by the sweep
+            xyz = xyz[keep]
+            intensity.append(value[keep].astype(np.float32) if has_value else None)
             lidar = lookup(lidars, pc, "lidar_token", "lidar")
             if lidar.token not in to_ego:
                 to_ego[lidar.token] = pose(lidar.pickled("translation", (3,)), lidar.pickled("rotation", (4,)),
@@ -308,7 +317,10 @@ class NuPlanDataparser(Dataparser):
             raise NuPlanFileMissing(f"{missing[0]}: none of the {len(frame_pcs)} LiDAR blobs of the loaded frames exists "
                                     "(table lidar_pc column filename; is --sensor-blobs right?); --no-load-lidar "
                                     "skips LiDAR")
-        return LidarSweeps(points=points, origins=origins)
+        # Intensity as the blobs hold it (merged clouds of five LiDARs with their own rings: no
+        # single beam model); all sweeps or none carry it.
+        carried = all(v is not None for v, p in zip(intensity, points) if p is not None)
+        return LidarSweeps(points=points, origins=origins, intensity=intensity if carried else None)
 
     def _tracks(self, db: LogDatabase, frame_pcs: list[Row], frame_us: np.ndarray,
                 world: np.ndarray) -> list[ActorTrack]:

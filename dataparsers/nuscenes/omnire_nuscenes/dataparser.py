@@ -22,7 +22,9 @@ Facts used (nuscenes-devkit ``docs/schema_nuscenes.md`` and ``utils/data_classes
   (the processed reader reads the reference's copy of the same K the same way; see
   docs/datasets.md, nuScenes).
 - LIDAR_TOP ``.pcd.bin``: float32 rows x y z intensity ring, in the LiDAR frame (x right,
-  y forward, z up on the car; its calibrated_sensor says so).
+  y forward, z up on the car; its calibrated_sensor says so). Intensity (0-255) / 255 and
+  ring (the beam, :data:`HDL32E`) ride along; ``sensor_to_world`` is that frame in x-forward
+  axes at the sweep's timestamp. The files hold no per-point time (``times`` is None).
 - Boxes (``sample_annotation``, keyframes only, 2 Hz): centre and rotation in the global
   frame; ``size`` is (width, length, height) and the box's x axis runs along the length
   (devkit ``Box.corners``: x forward, y left, z up). omnire boxes keep that rotation (x along
@@ -45,7 +47,7 @@ from typing import Optional, Type
 import numpy as np
 
 from omnire.api import (
-    ActorTrack, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap, SceneData,
+    ActorTrack, BeamModel, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap, SceneData,
     first_pose_world, frame_range, image_size, is_stationary, loaded_camera, nearest_index, resample_track,
     thin_points,
 )
@@ -62,7 +64,16 @@ CAMERAS = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "C
 """The six nuScenes cameras (the reference's camera ids 0..5 in this order)."""
 LIDAR = "LIDAR_TOP"
 LIDAR_COLUMNS = 5
-"""float32 values per point in a ``.pcd.bin``: x, y, z, intensity, ring index."""
+"""float32 values per point in a ``.pcd.bin``: x, y, z, intensity (0-255), ring index."""
+HDL32E = BeamModel(np.linspace(-30.67, 10.67, 32), azimuth_resolution_deg=1.0 / 3.0, max_range=70.0, min_range=0.0,
+                   name="Velodyne HDL-32E")
+"""LIDAR_TOP: 32 lasers evenly spread over +10.67 to -30.67 degrees (Velodyne HDL-32E
+datasheet), ring index r = the r-th lowest laser (the ring numbering of Velodyne's ROS
+driver, ascending elevation); 20 Hz with 1080 points per ring (0.33 degrees) and a range up
+to 70 m (nuScenes' sensor description)."""
+FORWARD_IN_LIDAR = np.array([[0.0, -1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+"""(4, 4) x-forward sensor axes -> LIDAR_TOP axes (x right, y forward, z up): its columns
+are forward, left and up in LIDAR_TOP coordinates."""
 
 ATTRIBUTION = (
     '"nuScenes: A multimodal dataset for autonomous driving", Caesar et al., CVPR 2020; nuScenes by Motional, '
@@ -287,30 +298,44 @@ class NuScenesDataparser(Dataparser):
     def _lidar(self, root: Path, sds: list[dict], ego_frames: np.ndarray, calib_of, world: np.ndarray) -> LidarSweeps:
         cfg = self.config
         points: list[Optional[np.ndarray]] = []
-        origins = np.full((len(sds), 3), np.nan)
+        intensity: list[Optional[np.ndarray]] = []
+        beams: list[Optional[np.ndarray]] = []
+        sensor_to_world = np.full((len(sds), 4, 4), np.nan)
         row = 4 * LIDAR_COLUMNS
         for j, sd in enumerate(sds):
             path = root / str(sd["filename"])
             if not path.is_file():  # a sweep not downloaded: a gap (keyframe-only copies lack sweeps/)
                 points.append(None)
+                intensity.append(None)
+                beams.append(None)
                 continue
             size = path.stat().st_size
             if size % row:
                 raise NuScenesDataError(f"{path}: {size} bytes is not a whole number of {row}-byte points "
                                         f"({LIDAR_COLUMNS} float32: x y z intensity ring) (sample_data {sd['token']!r})")
-            xyz = np.fromfile(path, dtype="<f4").reshape(-1, LIDAR_COLUMNS)[:, :3].astype(np.float64)  # (N, 3) LiDAR frame
-            if not np.isfinite(xyz).all():
-                raise NuScenesDataError(f"{path}: non-finite x, y, z values (sample_data {sd['token']!r})")
+            rows = np.fromfile(path, dtype="<f4").reshape(-1, LIDAR_COLUMNS).astype(np.float64)  # (N, 5) LiDAR frame
+            if not np.isfinite(rows).all():
+                raise NuScenesDataError(f"{path}: non-finite values (sample_data {sd['token']!r})")
+            ring = rows[:, 4]
+            if len(ring) and (ring.min() < 0 or ring.max() > HDL32E.num_beams - 1 or (ring != np.round(ring)).any()):
+                raise NuScenesDataError(f"{path}: column 5 (ring) must hold whole numbers 0..{HDL32E.num_beams - 1} "
+                                        f"(the HDL-32E's lasers) (sample_data {sd['token']!r})")
+            if len(rows) and not (0 <= rows[:, 3].min() and rows[:, 3].max() <= 255):
+                raise NuScenesDataError(f"{path}: column 4 (intensity) must hold numbers in 0..255 "
+                                        f"(sample_data {sd['token']!r})")
             if cfg.lidar_min_distance > 0:
-                xyz = xyz[np.hypot(xyz[:, 0], xyz[:, 1]) >= cfg.lidar_min_distance]
-            xyz = thin_points(xyz, cfg.max_lidar_points_per_frame, sd["timestamp"])  # keyed by the sweep
+                rows = rows[np.hypot(rows[:, 0], rows[:, 1]) >= cfg.lidar_min_distance]
+            rows = thin_points(rows, cfg.max_lidar_points_per_frame, sd["timestamp"])  # keyed by the sweep
             M = world @ ego_frames[j] @ calib_of(sd)  # (4, 4) LiDAR -> world
-            points.append((xyz @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
-            origins[j] = M[:3, 3]
+            points.append((rows[:, :3] @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
+            intensity.append((rows[:, 3] / 255.0).astype(np.float32))
+            beams.append(rows[:, 4].astype(np.int16))
+            sensor_to_world[j] = M @ FORWARD_IN_LIDAR
         if all(p is None for p in points):
             raise NuScenesFileMissing(f"{root / str(sds[0]['filename'])}: none of the {len(sds)} LiDAR files of the "
                                       "loaded frames exists (is --data the nuScenes data root?); --no-load-lidar skips LiDAR")
-        return LidarSweeps(points=points, origins=origins)
+        return LidarSweeps(points=points, origins=sensor_to_world[:, :3, 3].copy(), intensity=intensity, beams=beams,
+                           sensor_to_world=sensor_to_world, beam_model=HDL32E)
 
     def _tracks(self, tables: Path, samples: list[dict], key_t: np.ndarray, frame_us: np.ndarray,
                 world: np.ndarray) -> list[ActorTrack]:

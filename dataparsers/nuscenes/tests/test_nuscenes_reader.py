@@ -176,6 +176,24 @@ def test_lidar_round_trip(synth):
     assert np.allclose(s.lidar.origins, origins, atol=1e-6)
 
 
+def test_lidar_intensity_ring_and_sensor_pose(synth):
+    """Intensity (0-255 / 255) and ring (beam of the HDL-32E model) ride along; the sensor
+    pose is LIDAR_TOP's in x-forward axes (x = the ego's heading on the synthetic car)."""
+    s, ref = synth.scene, synth.ref
+    lidar = s.lidar
+    assert lidar.beam_model.name == "Velodyne HDL-32E" and lidar.beam_model.num_beams == 32
+    for f in range(FRAMES):
+        np.testing.assert_allclose(lidar.intensity[f], ref.lidar.intensity[f] / 255, atol=1e-6)  # processed: 0-255
+        # The writer's ring: the elevation (z up) spread over 16 rings from -25 to 10 degrees.
+        rel = lidar.points[f].astype(np.float64) - lidar.origins[f]
+        el = np.degrees(np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1])))
+        ring = np.clip(np.round((el + 25.0) / 35.0 * 15), 0, 15)
+        assert lidar.beams[f].dtype == np.int16 and np.mean(lidar.beams[f] == ring) > 0.99
+        assert lidar.sensor_to_world[f][:3, 0] @ s.ego_poses[f][:3, 0] > 0.999
+        np.testing.assert_allclose(lidar.sensor_to_world[f][:3, 3], lidar.origins[f])
+    assert lidar.times is None
+
+
 def test_boxes_round_trip_and_interpolation(synth):
     s, ref, gt = synth.scene, synth.ref, synth.gt
     keys = np.array([0, 5, 10])
@@ -344,6 +362,14 @@ def test_error_missing_image_and_bad_lidar(synth, tmp_path):
     pcd.write_bytes(pcd.read_bytes()[:-4])
     with pytest.raises(NuScenesDataError, match=r"not a whole number of 20-byte points \(5 float32: x y z intensity ring\)"):
         parse(root, cameras=("CAM_BACK",))
+    good = np.fromfile(next(p for p in (root / "samples" / "LIDAR_TOP").glob("*.pcd.bin")), dtype="<f4").reshape(-1, 5)
+    for column, value, needle in ((4, 32.0, r"column 5 \(ring\) must hold whole numbers 0..31"),
+                                  (4, 1.5, "column 5 \\(ring\\)"), (3, 300.0, r"column 4 \(intensity\) must hold numbers in 0..255")):
+        bad = good.copy()
+        bad[0, column] = value
+        pcd.write_bytes(bad.tobytes())
+        with pytest.raises(NuScenesDataError, match=needle):
+            parse(root, cameras=("CAM_BACK",))
     pcd.unlink()  # a sweep not downloaded: a gap
     s = parse(root, cameras=("CAM_BACK",))
     assert sum(p is None for p in s.lidar.points) == 1

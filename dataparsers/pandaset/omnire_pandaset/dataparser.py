@@ -56,6 +56,8 @@ from omnire.api import (
 )
 from omnire.api import hold_absent_poses, loaded_camera, require_files, thin_points
 
+from omnire_pandaset import pandar64
+
 CAMERAS = (
     "front_camera",
     "front_left_camera",
@@ -361,7 +363,11 @@ class PandasetDataparser(Dataparser):
         world = world_change(lidar_poses[start])  # (4, 4) PandaSet world -> omnire world
 
         cameras = [self._camera(root, name, n_log, frames, world) for name in cfg.cameras]
-        lidar = self._lidar(lidar_dir, lidar_poses, frames, source_frames, world) if cfg.load_lidar else None
+        lidar = None
+        if cfg.load_lidar:
+            track = self._pandar64_track(root, n_log, world)
+            lidar = self._lidar(lidar_dir, lidar_poses, track, np.asarray(lidar_times, np.float64), frames,
+                                source_frames, world)
         tracks = self._tracks(root, frames, world)
         train, test = holdout_split(len(frames), cfg.holdout_every)
         name = root.resolve().name
@@ -453,14 +459,36 @@ class PandasetDataparser(Dataparser):
                              ego_mask_path=EGO_MASKS.get(name),
                              timestamps=np.asarray(times, dtype=np.float64)[frames])
 
+    def _pandar64_track(self, root: Path, n_log: int, world: np.ndarray) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """The Pandar64's calibrated poses (omnire world, x-forward axes) at the front camera's
+        timestamps for the whole log (``pandar64.sensor_track``), or None for a sequence without
+        the front camera's poses (then no beams)."""
+        cam_dir = root / "camera" / "front_camera"
+        if not (cam_dir / "poses.json").is_file():
+            return None
+        poses = _pose_matrices(_read_json_list(cam_dir / "poses.json", n_log, "front_camera poses"), cam_dir / "poses.json")
+        stamps = _read_json_list(cam_dir / "timestamps.json", n_log, "front_camera timestamps (seconds)")
+        try:
+            stamps = np.asarray(stamps, dtype=np.float64)
+        except (TypeError, ValueError):
+            stamps = np.full(n_log, np.nan)
+        if not (np.isfinite(stamps).all() and (np.diff(stamps) > 0).all()):
+            raise SceneDataError(f"{cam_dir / 'timestamps.json'}: expected {n_log} increasing seconds")
+        return stamps, pandar64.sensor_track(world[None] @ poses)
+
     def _lidar(
-        self, lidar_dir: Path, lidar_poses: np.ndarray, frames: np.ndarray, source_frames: np.ndarray, world: np.ndarray
+        self, lidar_dir: Path, lidar_poses: np.ndarray, track: Optional[tuple[np.ndarray, np.ndarray]],
+        lidar_times: np.ndarray, frames: np.ndarray, source_frames: np.ndarray, world: np.ndarray
     ) -> LidarSweeps:
+        """The sweeps of ``frames``; with the Pandar64's ``track`` (times (K,), poses (K, 4, 4)),
+        its poses at the frames' timestamps and the beam of each of its returns, else the
+        poses of ``lidar_poses`` (N, 4, 4) (lidar/poses.json) and no beams."""
         cfg = self.config
         columns = ("x", "y", "z", "i", "t", "d")
         points: list[Optional[np.ndarray]] = []
         intensity: list[Optional[np.ndarray]] = []
         times: list[Optional[np.ndarray]] = []
+        beams: list[Optional[np.ndarray]] = []
         sensor_to_world = np.full((len(frames), 4, 4), np.nan)  # NaN where the frame has no LiDAR file
         for j, (f, src) in enumerate(zip(frames, source_frames)):
             path = _frame_file(lidar_dir, int(f), ".pkl.gz")
@@ -468,6 +496,7 @@ class PandasetDataparser(Dataparser):
                 points.append(None)
                 intensity.append(None)
                 times.append(None)
+                beams.append(None)
                 continue
             table = _read_frame_table(path, columns, "LiDAR point cloud")
             keep = np.flatnonzero(np.isin(table["d"].to_numpy(), list(cfg.lidar_sensors)))
@@ -485,10 +514,19 @@ class PandasetDataparser(Dataparser):
             points.append(xyz.astype(np.float32))
             intensity.append((strength / 255.0).astype(np.float32))
             times.append(stamp)
+            if track is None:  # no calibrated pose: the pose of lidar/poses.json, no beams
+                sensor_to_world[j] = world @ lidar_poses[f] @ _EGO_IN_LIDAR
+                continue
             # One pose per frame: the Pandar64's (the PandarGT sits ~1 m apart), in x-forward axes.
-            sensor_to_world[j] = world @ lidar_poses[f] @ _EGO_IN_LIDAR
+            sensor_to_world[j] = pandar64.sensor_poses_at(*track, lidar_times[f:f + 1])[0]
+            beam = np.full(len(keep), -1, dtype=np.int16)  # -1: a PandarGT return
+            mine = table["d"].to_numpy()[keep] == 0
+            beam[mine] = pandar64.beams_of(xyz[mine], stamp[mine], *track)
+            beams.append(beam)
+        calibrated = track is not None
         return LidarSweeps(points=points, origins=sensor_to_world[:, :3, 3].copy(), intensity=intensity, times=times,
-                           sensor_to_world=sensor_to_world)
+                           beams=beams if calibrated else None, sensor_to_world=sensor_to_world,
+                           beam_model=pandar64.BEAM_MODEL if calibrated else None)
 
     def _tracks(self, root: Path, frames: np.ndarray, world: np.ndarray) -> list[ActorTrack]:
         box_dir = root / "annotations" / "cuboids"

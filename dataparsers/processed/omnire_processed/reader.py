@@ -342,11 +342,13 @@ class ProcessedDataparser(Dataparser):
         layout = LIDAR_LAYOUTS[source]
         row = 4 * layout.columns
         points: list[Optional[np.ndarray]] = []
+        intensity: list[Optional[np.ndarray]] = []
         origins = np.full((len(frames), 3), np.nan)
         for i, t in enumerate(frames):
             path = folder / f"{t:03d}.bin"
             if not path.is_file():
                 points.append(None)
+                intensity.append(None)
                 continue
             size = path.stat().st_size
             if size % row:
@@ -362,12 +364,19 @@ class ProcessedDataparser(Dataparser):
             M = align @ poses[t]  # sensor/ego frame -> our world
             pts = xyz[keep] @ M[:3, :3].T + M[:3, 3]
             points.append(pts.astype(np.float32))
+            if layout.intensity is not None:
+                value = data[keep, layout.intensity].astype(np.float32)
+                if not (np.isfinite(value).all() and (value >= 0).all()):
+                    raise ProcessedSceneError(f"{path}: column {layout.intensity + 1} (intensity) must hold finite "
+                                              f"numbers >= 0 ({source} rows: {layout.description})")
+                intensity.append(value)
             if layout.origin is not None and len(data):
                 o = data[:, layout.origin:layout.origin + 3].astype(np.float64).mean(0)
                 origins[i] = M[:3, :3] @ o + M[:3, 3]
             else:
                 origins[i] = M[:3, 3]
-        return LidarSweeps(points, origins)
+        # Intensity on the file's own scale (each source's preprocessing decides it).
+        return LidarSweeps(points, origins, intensity=intensity if layout.intensity is not None else None)
 
     # ------------------------------------------------------------------ tracks
     def _tracks(self, root: Path, n_full: int, frames: np.ndarray, align: np.ndarray,

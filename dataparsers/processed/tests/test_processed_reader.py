@@ -262,6 +262,16 @@ def test_bad_input_lidar_size_not_multiple_of_row(scenes, tmp_path):
         read(bad)
 
 
+def test_bad_input_negative_intensity(scenes, tmp_path):
+    bad = _corrupt_copy(scenes, tmp_path)
+    path = bad / "lidar" / "003.bin"
+    rows = np.fromfile(path, dtype=np.float32).reshape(-1, 5)
+    rows[2, 3] = -1.0
+    path.write_bytes(rows.tobytes())
+    with pytest.raises(ProcessedSceneError, match=r"lidar/003\.bin: column 4 \(intensity\) must hold finite numbers >= 0"):
+        read(bad)
+
+
 def test_bad_input_instances_beyond_log(scenes, tmp_path):
     bad = _corrupt_copy(scenes, tmp_path)
     path = bad / "instances" / "instances_info.json"

@@ -108,9 +108,14 @@ def test_lidar_point_sets_are_the_same_sweeps(both):
         assert (pa is None) == (pb is None), f"frame {ref.source_frames[b]}"
         if pa is None:
             continue
-        np.testing.assert_allclose(T[:3, :3] @ raw.lidar.origins[a] + T[:3, 3], ref.lidar.origins[b], atol=1e-6)
-        d, _ = cKDTree(pa.astype(np.float64) @ T[:3, :3].T + T[:3, 3]).query(pb.astype(np.float64))
+        # The reference puts each sweep's origin at the pose of lidar/poses.json, the raw
+        # reader's ego pose (its LiDAR origin is the calibrated optical centre, docs/lidar.md).
+        np.testing.assert_allclose(T[:3, :3] @ raw.ego_poses[a][:3, 3] + T[:3, 3], ref.lidar.origins[b], atol=1e-6)
+        d, j = cKDTree(pa.astype(np.float64) @ T[:3, :3].T + T[:3, 3]).query(pb.astype(np.float64))
         same = float((d < 1e-4).mean())
+        # The reference keeps PandaSet's 0-255 intensity (the pandaset reader divides by 255).
+        np.testing.assert_allclose(ref.lidar.intensity[b][d < 1e-4], raw.lidar.intensity[a][j[d < 1e-4]] * 255,
+                                   atol=1e-3)
         assert 0.10 < same < 0.15, (ref.source_frames[b], same)
         nxt = next((j for j in range(a + 1, len(raw.lidar.points)) if raw.lidar.points[j] is not None), None)
         if nxt is not None:  # control: another sweep shares (almost) no points

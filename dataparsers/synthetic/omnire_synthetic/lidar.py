@@ -1,10 +1,9 @@
 """Ground-truth LiDAR: a spinning sensor's sweep ray-traced through the scene's triangles
-with trimesh's Embree backend (``embreex``).
+with trimesh's Embree backend (``embreex``, through ``omnire.api.first_hits``: a return
+lies on the mesh to rounding).
 
-Embree finds the first triangle along each ray (in float32); the range is then recomputed
-in float64 as the distance to that triangle's plane, so a return lies on the mesh to
-rounding. A ray returns nothing (a missing return, recorded with its reason) when it hits
-nothing, when its hit is beyond the beam model's max range or nearer than its min range,
+A ray returns nothing (a missing return, recorded with its reason) when it hits nothing,
+when its hit is beyond the beam model's max range or nearer than its min range,
 or when it meets the surface at a grazing angle (incidence from the normal above
 ``grazing_drop_deg``). Intensity: the hit material's reflectivity times
 ``0.3 + 0.7 cos(incidence)`` (Lambertian with an ambient floor), in [0, 1].
@@ -14,10 +13,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import trimesh
-from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from omnire.api import BeamModel
+from omnire.api import BeamModel, first_hits
 
 RETURNED, NOTHING_HIT, OUT_OF_RANGE, GRAZING = 0, 1, 2, 3
 """Why a ray did or did not return (:attr:`Sweep.reason`)."""
@@ -86,24 +83,17 @@ def cast_sweep(verts: np.ndarray, faces: np.ndarray, material: np.ndarray, senso
     face = np.full(R, -1, dtype=np.int64)
     intensity = np.full(R, np.nan, dtype=np.float32)
     reason = np.full(R, NOTHING_HIT, dtype=np.int8)
-    if len(faces):
-        rot, origin = sensor_to_world[:3, :3], sensor_to_world[:3, 3]
-        d_w = d_s @ rot.T
-        mesh = trimesh.Trimesh(verts, faces, process=False, validate=False)
-        tri, ray = RayMeshIntersector(mesh).intersects_id(np.broadcast_to(origin, (R, 3)), d_w, multiple_hits=False)
-        tri, ray = np.asarray(tri, dtype=np.int64), np.asarray(ray, dtype=np.int64)
-        v = verts[faces[tri]]  # (H, 3, 3)
-        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-        n /= np.linalg.norm(n, axis=1, keepdims=True).clip(1e-300)
-        cos = np.abs((n * d_w[ray]).sum(1))
-        dist = np.abs(((v[:, 0] - origin) * n).sum(1)) / cos.clip(1e-300)  # float64 distance to the plane
-        face[ray] = tri
-        ok_range = (dist >= spec.beams.min_range) & (dist <= spec.beams.max_range)
-        ok_angle = cos >= np.cos(np.deg2rad(spec.grazing_drop_deg))
-        reason[ray] = np.where(~ok_range, OUT_OF_RANGE, np.where(~ok_angle, GRAZING, RETURNED))
-        hit = ray[ok_range & ok_angle]
-        keep = ok_range & ok_angle
-        rng[hit] = dist[keep]
-        refl = np.asarray(spec.reflectivity, dtype=np.float64)[np.asarray(material)[tri[keep]]]
-        intensity[hit] = (refl * (0.3 + 0.7 * cos[keep])).astype(np.float32)
+    rot, origin = sensor_to_world[:3, :3], sensor_to_world[:3, 3]
+    hits = first_hits(verts, faces, np.broadcast_to(origin, (R, 3)), d_s @ rot.T)
+    ray = np.flatnonzero(hits.face >= 0)
+    tri, dist, cos = hits.face[ray], hits.distance[ray], hits.cos_incidence[ray]
+    face[ray] = tri
+    ok_range = (dist >= spec.beams.min_range) & (dist <= spec.beams.max_range)
+    ok_angle = cos >= np.cos(np.deg2rad(spec.grazing_drop_deg))
+    reason[ray] = np.where(~ok_range, OUT_OF_RANGE, np.where(~ok_angle, GRAZING, RETURNED))
+    keep = ok_range & ok_angle
+    hit = ray[keep]
+    rng[hit] = dist[keep]
+    refl = np.asarray(spec.reflectivity, dtype=np.float64)[np.asarray(material)[tri[keep]]]
+    intensity[hit] = (refl * (0.3 + 0.7 * cos[keep])).astype(np.float32)
     return Sweep(d_s, beam, column, rng, face, intensity, reason)

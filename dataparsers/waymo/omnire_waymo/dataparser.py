@@ -24,7 +24,13 @@ Conventions (dataset.proto comments; the projection check of the tests on the re
   time of the 3D labels; ``Frame.pose`` is the vehicle pose the labels and the non-top
   LiDARs are expressed in.
 - LiDAR: see :mod:`omnire_waymo.rangeimage`; the top LiDAR's points use their per-pixel
-  vehicle poses, so each point is placed where the vehicle was when it was measured.
+  vehicle poses, so each point is placed where the vehicle was when it was measured. Each
+  return keeps its intensity (range image channel 1, Waymo's raw scale) and, for the TOP
+  LiDAR, its beam: the range image row, whose elevation is the calibration's beam
+  inclination (``beam_model``: 360 / W degrees per column, 75 m range); returns of the other
+  LiDARs have beam -1. ``sensor_to_world`` is the TOP LiDAR's pose at the frame (its
+  extrinsic turned about its own z so that x points forward; elevations unchanged). The
+  records hold no per-point time (``times`` is None).
 - Boxes: ``Label.Box`` centre and heading in the frame's vehicle frame, upright, x along
   the heading, size (length, width, height).
 """
@@ -42,9 +48,9 @@ from typing import Literal, Optional, Type
 import numpy as np
 
 from omnire.api import (
-    ActorTrack, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MissingFileError,
-    SceneData, SceneDataError, first_pose_world, frame_range, is_stationary, loaded_camera, majority_label,
-    resample_track, rot_z, thin_points, user_cache_dir,
+    ActorTrack, BeamModel, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig,
+    MissingFileError, SceneData, SceneDataError, first_pose_world, frame_range, is_stationary, loaded_camera,
+    majority_label, resample_track, rigid, rot_z, thin_points, user_cache_dir,
 )
 from omnire_waymo import rangeimage
 from omnire_waymo.tfrecord import RecordSpan, TFRecordReader
@@ -64,6 +70,9 @@ LASER_NAMES: dict[int, str] = {v: k for k, v in dataset_pb2.LaserName.Name.items
 """Waymo LaserName enum value -> name (TOP, FRONT, SIDE_LEFT, SIDE_RIGHT, REAR)."""
 DEFAULT_CAMERAS = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT")
 ALL_LIDARS = ("TOP", "FRONT", "SIDE_LEFT", "SIDE_RIGHT", "REAR")
+TOP_MAX_RANGE = 75.0
+"""Metres: the TOP LiDAR's range ("Scalability in Perception for Autonomous Driving: Waymo
+Open Dataset", Sun et al., CVPR 2020, Table 1)."""
 LABEL_TYPES: dict[int, str] = {v: k for k, v in label_pb2.Label.Type.items()}
 CATEGORY = {
     "TYPE_VEHICLE": "vehicle",
@@ -312,7 +321,11 @@ class WaymoDataparser(Dataparser):
         self.frame_times: list[float] = []
         self.ego_global: list[np.ndarray] = []
         self.points: list[Optional[np.ndarray]] = []
-        self.origins: list[np.ndarray] = []
+        self.intensity: list[Optional[np.ndarray]] = []
+        self.beams: list[Optional[np.ndarray]] = []
+        self.sensor_poses: list[np.ndarray] = []
+        self.top_model: Optional[BeamModel] = None
+        self.top_shape: tuple[int, int] = (0, 0)
         self.labels: list[dict] = []  # per frame: arrays over its labels (compact for long segments)
         self.checked_size: set[str] = set()
 
@@ -384,9 +397,12 @@ class WaymoDataparser(Dataparser):
         self.checked_size.add(cam.name)
 
     def _lidar(self, frame, where: str, index: int, vehicle_pose: np.ndarray) -> None:
+        """One frame's returns (every selected LiDAR and return) with their intensity (range
+        image channel 1) and beam (the TOP range image's row; -1 for the other LiDARs), and
+        the pose of the TOP LiDAR (else the first one present)."""
         cfg = self.config
         wanted = {n.upper() for n in cfg.lidars}
-        parts, origin = [], None
+        parts, values, beams, sensor = [], [], [], None
         for laser in frame.lasers:
             name = LASER_NAMES.get(laser.name, f"UNKNOWN_{laser.name}")
             if name not in wanted:
@@ -407,8 +423,8 @@ class WaymoDataparser(Dataparser):
                     continue
                 field = f"{lw}.ri_return{ret}.range_image_compressed"
                 img = self._matrix(ri.range_image_compressed, field)
-                if img.ndim != 3 or img.shape[2] < 1:
-                    raise SceneDataError(f"{field}: shape {list(img.shape)}, expected [H, W, 4]")
+                if img.ndim != 3 or img.shape[2] < 2:
+                    raise SceneDataError(f"{field}: shape {list(img.shape)}, expected [H, W, 4] (range, intensity, ...)")
                 try:
                     incl = rangeimage.row_inclinations(calib, img.shape[0])
                     if pixel_pose is not None and pixel_pose.shape != img.shape[:2] + (6,):
@@ -416,19 +432,42 @@ class WaymoDataparser(Dataparser):
                             f"range_image_pose_compressed has shape {list(pixel_pose.shape)}, expected "
                             f"{list(img.shape[:2]) + [6]}"
                         )
-                    pts, _ = rangeimage.range_image_to_points(img[..., 0], incl, E, vehicle_pose, pixel_pose, self.world)
+                    pts, pixel = rangeimage.range_image_to_points(img[..., 0], incl, E, vehicle_pose, pixel_pose, self.world)
                 except rangeimage.RangeImageError as exc:
                     raise SceneDataError(f"{field}: {exc} (calibration context.laser_calibrations[{name}])") from None
+                value = img[pixel[:, 0], pixel[:, 1], 1]
+                if len(value) and value.min() < 0:
+                    raise SceneDataError(f"{field}: negative intensity (channel 1) at a pixel with a return")
                 parts.append(pts)
-            if origin is None or name == "TOP":
-                origin = (self.world @ vehicle_pose @ E)[:3, 3]
+                values.append(value)
+                if name == "TOP":
+                    self._top_beams(calib, img.shape[:2], incl, field)
+                beams.append(pixel[:, 0] if name == "TOP" else np.full(len(pts), -1))
+            if sensor is None or name == "TOP":
+                yaw = np.arctan2(E[1, 0], E[0, 0])  # turn the LiDAR's x to the vehicle's forward
+                sensor = self.world @ vehicle_pose @ E @ rigid(rot_z(np.float64(-yaw)))
         if not parts:
             self.points.append(None)
-            self.origins.append(np.full(3, np.nan))
+            self.intensity.append(None)
+            self.beams.append(None)
+            self.sensor_poses.append(np.full((4, 4), np.nan))
             return
-        pts = thin_points(np.concatenate(parts), cfg.max_lidar_points_per_frame, index)  # keyed by the record
-        self.points.append(pts.astype(np.float32))
-        self.origins.append(origin)
+        keep = thin_points(np.arange(sum(len(p) for p in parts)), cfg.max_lidar_points_per_frame, index)  # keyed by the record
+        self.points.append(np.concatenate(parts)[keep].astype(np.float32))
+        self.intensity.append(np.concatenate(values)[keep].astype(np.float32))
+        self.beams.append(np.concatenate(beams)[keep].astype(np.int16))
+        self.sensor_poses.append(sensor)
+
+    def _top_beams(self, calib, shape: tuple[int, int], inclinations: np.ndarray, field: str) -> None:
+        """The TOP LiDAR's beam model from its first range image: beam b = row b at the
+        calibration's inclination, the azimuth step 360 / W, Waymo's 75 m range; a later
+        image of another size does not fit it."""
+        if self.top_model is None:
+            self.top_model = BeamModel(np.rad2deg(inclinations), 360.0 / shape[1], max_range=TOP_MAX_RANGE,
+                                       name="Waymo TOP")
+            self.top_shape = shape
+        elif shape != self.top_shape:
+            raise SceneDataError(f"{field}: shape {list(shape)}, the TOP range images before were {list(self.top_shape)}")
 
     def _matrix(self, compressed: bytes, field: str) -> np.ndarray:
         try:
@@ -480,7 +519,10 @@ class WaymoDataparser(Dataparser):
         lidar = None
         if cfg.load_lidar:
             if any(p is not None for p in self.points):
-                lidar = LidarSweeps(points=self.points, origins=np.stack(self.origins))
+                poses = np.stack(self.sensor_poses)
+                top = self.top_model is not None
+                lidar = LidarSweeps(points=self.points, origins=poses[:, :3, 3].copy(), intensity=self.intensity,
+                                    beams=self.beams if top else None, sensor_to_world=poses, beam_model=self.top_model)
             else:
                 warnings.warn(f"{self.path}: no range images in the loaded frames; the scene has no LiDAR", stacklevel=3)
         synthetic = self.context_name.startswith(SYNTHETIC_PREFIX)

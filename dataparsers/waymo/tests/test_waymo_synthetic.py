@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from omnire.api import ConfigError, SceneDataError
+from omnire.api import ConfigError, SceneDataError, spherical
 from omnire_waymo import WaymoConfig
 from omnire_waymo.tfrecord import TFRecordReader
 from omnire_waymo.wod import dataset_pb2
@@ -83,6 +83,24 @@ def compare(ref, got):
 
 def test_round_trip_against_processed_reader(pair):
     compare(*pair)
+
+
+def test_top_lidar_beams_intensity_and_pose(pair):
+    """TOP returns carry their range-image row as beam, at the calibration's inclination
+    seen from ``sensor_to_world`` (x forward: the TOP LiDAR's pose turned to the vehicle's
+    heading); the writer stores intensity 0 (not simulated)."""
+    _, got = pair
+    lidar, model = got.lidar, got.lidar.beam_model
+    assert model.name == "Waymo TOP" and model.num_beams > 8 and np.all(np.diff(model.elevations_deg) < 0)
+    for f in lidar.available_frames():
+        top = lidar.beams[f] >= 0
+        assert top.mean() > 0.5 and (lidar.intensity[f] == 0).all()
+        P = lidar.sensor_to_world[f]
+        local = (lidar.points[f][top].astype(np.float64) - P[:3, 3]) @ P[:3, :3]
+        _, _, el = spherical(local)
+        assert np.abs(el - model.elevations_deg[lidar.beams[f][top]]).max() < 0.05
+        forward = got.ego_poses[f][:3, 0]
+        assert P[:3, 0] @ forward > np.cos(np.deg2rad(2.0))
 
 
 def test_world_convention(pair):
