@@ -13,8 +13,7 @@ from typing import Union
 import numpy as np
 import torch
 
-from omnire.geometry import (axis_angle_to_rotmat, quat_to_rotmat, rotmat_to_axis_angle, rotmat_to_quat, slerp_quats,
-                             slerp_rotmats)
+from omnire.geometry import (axis_angle_to_rotmat, rotmat_to_axis_angle, slerp_rotmats)
 
 Array = Union[np.ndarray, torch.Tensor]
 
@@ -44,15 +43,25 @@ def interpolate_rotations(R: Array, i0, i1, w) -> Array:
     (Q,): (Q, ..., 3, 3). Rows with w = 0 are returned exactly."""
     if isinstance(R, np.ndarray) and R.ndim == 3:
         # (K, 3, 3) queried many times (a LiDAR sweep: 1e5 returns between a few poses):
-        # each distinct bracket's quaternions once, then the same SLERP per query.
+        # each distinct bracket's relative rotation once as an axis and angle (shorter arc),
+        # then per query R0 exp(w angle [axis]x) by Rodrigues' formula in numpy: the geodesic
+        # quaternion SLERP follows, without per-query torch calls (10x slower on small arrays).
         w = np.asarray(w, dtype=np.float64)
         out = R[i0].copy()
         mix = w > 0
         if mix.any():
             pair, inverse = np.unique(np.stack([i0[mix], i1[mix]], 1), axis=0, return_inverse=True)
             inverse = inverse.reshape(-1)
-            q0, q1 = rotmat_to_quat(R[pair[:, 0]]), rotmat_to_quat(R[pair[:, 1]])
-            out[mix] = quat_to_rotmat(slerp_quats(q0[inverse], q1[inverse], np.ascontiguousarray(w[mix])))
+            R0 = R[pair[:, 0]]  # (P, 3, 3)
+            rotvec = np.asarray(rotmat_to_axis_angle(np.swapaxes(R0, 1, 2) @ R[pair[:, 1]]))  # (P, 3)
+            angle = np.linalg.norm(rotvec, axis=1)  # (P,) in [0, pi]
+            x, y, z = (rotvec / np.where(angle > 0, angle, 1.0)[:, None]).T
+            zero = np.zeros_like(x)
+            K = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], 1).reshape(-1, 3, 3)  # [axis]x
+            phi = w[mix] * angle[inverse]  # (Q',)
+            exp = (np.eye(3) + np.sin(phi)[:, None, None] * K[inverse]
+                   + (1 - np.cos(phi))[:, None, None] * (K @ K)[inverse])
+            out[mix] = R0[inverse] @ exp
         return out
     R0, R1 = R[i0], R[i1]
     if isinstance(R, np.ndarray):
