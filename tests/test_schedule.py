@@ -250,3 +250,17 @@ def test_a_time_budget_resumes_on_its_clock(synth, timed):
     assert resumed.densify_stop == state["densify_stop"]
     resumed.train()
     check_completed_schedule(resumed, BUDGET, grew=False)
+
+
+def test_a_step_budget_continues_a_time_runs_schedule_step(synth, timed):
+    """Continuing a time run on steps (as ``omnire compact`` fine-tunes) keeps its schedule
+    step, one more per step, and saves it: the continued run renders at its SH degree."""
+    slow = timed["slow"]
+    end = slow.recon.schedule_step
+    more = trainer_of(synth, "slow-more", ["--trainer.max-steps", str(slow.step + 2), "--trainer.resume",
+                                           str(slow.run_dir)], method=TIMED_METHOD)
+    assert (more.step, more.recon.schedule_step) == (slow.step, end)
+    more.train()
+    assert (more.step, more.recon.schedule_step) == (slow.step + 2, end + 2)
+    recon = Reconstruction.from_run(more.run_dir, load_plugins())
+    assert recon.schedule_step == end + 2 and recon.sh_degree() == slow.recon.sh_degree() >= 2
