@@ -32,7 +32,8 @@ class LossContext:
             trusted everywhere.
         scene_pixels: (H, W, 1) 0 on the recording vehicle (ego mask), 1 elsewhere; None =
             every pixel. Losses ignore the vehicle's pixels.
-        step: training step.
+        step: the schedule step of training (:mod:`omnire.schedule`; the training step for a
+            step budget).
         ssim: the SSIM map function (``ssim_map``'s contract); the trainer passes the
             rasterizer's native one when it has one (``Rasterizer.ssim_map``).
     """

@@ -40,7 +40,9 @@ def exponential_lr(lr: float, lr_final: Optional[float], step: int, max_steps: i
 
 
 class Optimizers:
-    """Adam per node. ``step(step)`` applies the schedules then steps every optimiser."""
+    """Adam per node. ``step(step)`` applies the schedules at schedule step ``step`` (the
+    training step for a step budget; :mod:`omnire.schedule`) then steps every optimiser;
+    ``max_steps`` is the schedule's length, over which the learning rates decay."""
 
     def __init__(self, nodes: dict[str, Node], max_steps: int) -> None:
         self.max_steps = max_steps
@@ -70,6 +72,12 @@ class Optimizers:
                 group["lr"] = exponential_lr(spec.lr, spec.lr_final, step, self.max_steps, spec.warmup_steps)
             step_sparse_params(opt)  # row-sparse gradients first; clears them so opt.step() skips them
             opt.step()
+
+    def learning_rates(self) -> dict[str, float]:
+        """The learning rate of every group, ``{"<node>.<group>": lr}``, as the last
+        :meth:`step` set it (the initial ones before any step)."""
+        return {f"{name}.{group['name']}": float(group["lr"])
+                for name, opt in self.optimizers.items() for group in opt.param_groups}
 
     def replace_gaussian_rows(
         self,

@@ -24,10 +24,16 @@ if TYPE_CHECKING:
 class TrainerConfig:
     """Loop, logging, evaluation and checkpoint settings."""
 
-    max_steps: int = 3000
-    """Training iterations (one image per step); learning-rate schedules span them."""
+    max_steps: Optional[int] = None
+    """Training steps (one image per step): the step budget, which the schedules (learning-rate
+    decay, densification, SH bands, coarse-to-fine, node warm-ups) span. Not given: 3000, or
+    with --trainer.max-seconds no step limit (see omnire/schedule.py)."""
     max_seconds: float = 0.0
-    """Stop earlier once training (not evaluation) has taken this many seconds (0: no limit)."""
+    """Time budget: seconds of training (evaluation and checkpoints excluded), over which the
+    schedules are laid (the larger of step / max-steps and seconds / max-seconds is the
+    run's progress); training ends when either budget is spent. 0: no time budget, the
+    schedules follow the step count exactly. A time budget is not bit-reproducible: see
+    omnire/schedule.py."""
     eval_every: int = 0
     """Evaluate on the held-out frames every N steps (0: only at the end)."""
     log_every: int = 25
@@ -75,12 +81,12 @@ def validate_trainer_config(tc: TrainerConfig) -> None:
     positive = {"max_steps": tc.max_steps, "log_every": tc.log_every, "checkpoint_every": tc.checkpoint_every,
                 "observe_every": tc.observe_every}
     for name, value in positive.items():
-        if value <= 0:
+        if value is not None and value <= 0:
             raise ConfigError(f"--trainer.{name.replace('_', '-')} {value}: must be a positive number of steps")
     for name, value in {"max_seconds": tc.max_seconds, "eval_every": tc.eval_every, "threads": tc.threads,
                         "eval_train_views": tc.eval_train_views}.items():
-        if value < 0 or value != value:
-            raise ConfigError(f"--trainer.{name.replace('_', '-')} {value}: must be >= 0 (0: "
+        if value < 0 or value != value or value == float("inf"):
+            raise ConfigError(f"--trainer.{name.replace('_', '-')} {value}: must be a finite number >= 0 (0: "
                               + {"max_seconds": "no time limit", "eval_every": "only at the end",
                                  "threads": "torch's default", "eval_train_views": "all"}[name] + ")")
     parse_device(tc.device, "--trainer.device")

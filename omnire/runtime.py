@@ -134,6 +134,9 @@ class Reconstruction:
         method: the method config.
         step: training steps behind the current state (0 for a fresh build); the one step
             counter of a run (the trainer advances it).
+        schedule_step: where the training schedules stand (:mod:`omnire.schedule`): ``step``
+            itself, unless a time budget set it apart (the trainer sets it then; checkpoints
+            keep it). The SH degree of a render follows it.
         run_info, config, run_dir, checkpoint: the run it was loaded from
             (:meth:`from_run`); None when built fresh.
     """
@@ -145,6 +148,7 @@ class Reconstruction:
         self.model = model
         self.method = method
         self.step = step
+        self._schedule_step: Optional[int] = None
         self.run_info = run_info
         self.config = config
         self.run_dir = run_dir
@@ -215,8 +219,20 @@ class Reconstruction:
         with torch.no_grad():
             copied = copy.deepcopy(model, memo)
         copied.requires_grad_(False)
-        return Reconstruction(self.scene, copied, self.method, step=self.step, run_info=self.run_info,
-                              config=self.config, run_dir=self.run_dir, checkpoint=self.checkpoint)
+        snapshot = Reconstruction(self.scene, copied, self.method, step=self.step, run_info=self.run_info,
+                                  config=self.config, run_dir=self.run_dir, checkpoint=self.checkpoint)
+        snapshot.schedule_step = self._schedule_step
+        return snapshot
+
+    @property
+    def schedule_step(self) -> int:
+        """Where the training schedules stand: :attr:`step`, unless set apart (a time budget)."""
+        return self.step if self._schedule_step is None else self._schedule_step
+
+    @schedule_step.setter
+    def schedule_step(self, value: Optional[int]) -> None:
+        """Set the schedule step apart from the step count (None: follow :attr:`step` again)."""
+        self._schedule_step = None if value is None else int(value)
 
     # ------------------------------------------------------------------ state
     def load_state(self, state: dict, assign: bool = False) -> None:
@@ -230,6 +246,7 @@ class Reconstruction:
             self.model.camera_poses = None  # trained before pose refinement was learned: recorded poses
         self.model.load_state_dict(state["model"], assign=assign)
         self.step = int(state["step"])
+        self.schedule_step = state.get("schedule_step")  # None: the step count (step budgets, older runs)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -295,8 +312,9 @@ class Reconstruction:
         return self.model.num_gaussians()
 
     def sh_degree(self, step: Optional[int] = None) -> int:
-        """SH bands switched on after ``step`` training steps (default: the state's step)."""
-        s = self.step if step is None else step
+        """SH bands switched on at schedule step ``step`` (default: the state's
+        :attr:`schedule_step`, the step count unless a time budget set it apart)."""
+        s = self.schedule_step if step is None else step
         return min(3, s // max(1, self.method.sh_degree_interval))
 
     def camera(self, view: View) -> Camera:
@@ -378,7 +396,8 @@ class Reconstruction:
                hidden: frozenset[str] = frozenset(), sh_degree: Optional[int] = None,
                edits: Optional[ActorEdits] = None, only: Optional[Collection[str]] = None) -> RenderResult:
         """Render what :meth:`drawn` yields at ``time`` through ``camera``. ``step``: the
-        training step (for warm-up schedules; None renders the trained model); ``hidden``:
+        schedule step of training (:mod:`omnire.schedule`; for warm-up schedules; None renders
+        the trained model); ``hidden``:
         node names not drawn; ``edits``, ``only``: as :meth:`drawn` (with ``only`` the
         environment is left out too)."""
         parts = self.node_outputs(self.drawn(time, edits, only, hidden), camera, time, step)

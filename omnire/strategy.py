@@ -2,8 +2,9 @@
 
 Per Gaussian the strategy accumulates |dL/d means2d| summed over pixels (from the
 rasterizer's ``absgrad2d``), scaled to normalised device units (x W/2, x H/2 as in
-3DGS/gsplat), and how often it was visible. Every ``refine_every`` steps from
-``refine_start`` on:
+3DGS/gsplat), and how often it was visible. Every ``refine_every`` training steps, once the
+schedule (:mod:`omnire.schedule`: the step count for a step budget, the clock's for a time
+budget) is at ``refine_start``:
 
 - grow (before ``refine_stop``): Gaussians whose mean accumulated gradient exceeds
   ``grad_threshold`` are cloned when small (max scale <= ``scale_threshold`` x scene
@@ -12,12 +13,18 @@ rasterizer's ``absgrad2d``), scaled to normalised device units (x W/2, x H/2 as 
   first opacity reset, when there was one), non-finite, or flagged by the node
   (``Node.extra_prune_mask``);
 - nodes that rely on a row order (``Node.row_order``) get their rows permuted back;
-- every ``reset_every`` steps opacities are clamped to 2 x ``prune_opacity``, only while
-  growth is still on (a reset needs densification steps after it to recover).
+- every ``reset_every`` schedule steps opacities are clamped to 2 x ``prune_opacity``, only
+  while growth is still on (a reset needs densification steps after it to recover).
 
-Growth stops at ``refine_stop`` or at half the run, whichever is first: the reference stops
-at 15k of 30k steps, and shorter CPU runs keep that proportion (a 3000-step run grows until
-1500 and never resets opacity in its last steps).
+``refine_every`` counts training steps, not schedule steps: it is how many views the
+statistics average over. A slow machine on a time budget, whose steps each stand for several
+schedule steps, refines as often per view as a fast one, from statistics as good, instead
+of growing from a handful of views what it has too few steps left to optimise.
+
+Growth stops at ``refine_stop`` or at half the schedule, whichever is first: the reference
+stops at 15k of 30k steps, and shorter CPU runs keep that proportion (a 3000-step run grows
+until 1500 and never resets opacity in its last steps; a time budget grows for half its
+seconds).
 
 State is explicit (tensors per node) and saved in checkpoints.
 """
@@ -32,6 +39,7 @@ import torch
 from omnire.geometry import quat_to_rotmat
 from omnire.nodes.base import Node
 from omnire.optim import Optimizers
+from omnire.schedule import passed
 
 
 @dataclasses.dataclass
@@ -45,7 +53,7 @@ class DensifyConfig:
     refine_start: int = 500
     """First step that refines."""
     refine_every: int = 100
-    """Steps between refinements."""
+    """Training steps between refinements (the views the statistics average over)."""
     refine_stop: int = 15_000
     """No growth after this step."""
     reset_every: int = 3000
@@ -70,6 +78,9 @@ class NodeSlice:
 
 
 class AbsGradStrategy:
+    """AbsGrad densification of every Gaussian node; ``max_steps``: the schedule's length
+    (growth stops at half of it at the latest)."""
+
     def __init__(self, config: DensifyConfig, scene_radius: float, max_steps: Optional[int] = None) -> None:
         self.config = config
         self.scene_radius = scene_radius
@@ -106,19 +117,27 @@ class AbsGradStrategy:
                 st["grad2d"].index_add_(0, sl.rows, g * v)
                 st["count"].index_add_(0, sl.rows, v)
 
-    def step(self, nodes: dict[str, Node], optimizers: Optimizers, step: int) -> dict[str, int]:
-        """Refine / reset at the scheduled steps. Returns counts of what was done."""
+    def step(self, nodes: dict[str, Node], optimizers: Optimizers, step: int, schedule_step: Optional[int] = None,
+             since: Optional[int] = None) -> dict[str, int]:
+        """After training step ``step``: refine every ``refine_every`` training steps (the
+        statistics of as many views each time) while the schedule, at ``schedule_step``
+        (default ``step``), is past ``refine_start`` (growth only before the stop); reset
+        opacities where the schedule passed a multiple of ``reset_every`` going from schedule
+        step ``since`` (default ``schedule_step - 1``) to ``schedule_step``
+        (:func:`omnire.schedule.passed`). Returns counts of what was done."""
         c = self.config
+        at = step if schedule_step is None else schedule_step
+        since = at - 1 if since is None else since
         report = {"grown": 0, "pruned": 0}
-        if step >= c.refine_start and step % c.refine_every == 0 and step > 0:
+        if at >= c.refine_start and step % c.refine_every == 0 and step > 0:
             for name, node in nodes.items():
                 if node.num_gaussians == 0 or name not in self.state:
                     continue
-                if step < self.refine_stop:
+                if at < self.refine_stop:
                     report["grown"] += self._grow(name, node, optimizers)
-                report["pruned"] += self._prune(name, node, optimizers, step)
+                report["pruned"] += self._prune(name, node, optimizers, at)
                 self.rows_changed(name, node, optimizers)
-        if c.reset_every > 0 and 0 < step < self.refine_stop and step % c.reset_every == 0:
+        if 0 < at < self.refine_stop and passed(c.reset_every, since, at):
             for name, node in nodes.items():
                 if node.num_gaussians:
                     self._reset_opacity(name, node, optimizers)

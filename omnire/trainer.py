@@ -6,6 +6,11 @@ each, ``stage_<name>``, passing a :class:`StepState` along): ``omnire bench step
 very step training takes, stage by stage. The step counter is the reconstruction's
 (``Trainer.step`` reads ``recon.step``; the ``optimizer`` stage advances it).
 
+Every schedule (learning rates, densification, SH bands, coarse-to-fine, node warm-ups)
+reads the schedule step of :mod:`omnire.schedule`: the step counter for a step budget, the
+clock's for a time budget (``--trainer.max-seconds``), which the ``densify`` stage advances
+(``recon.schedule_step``).
+
 Checkpoints hold the model, optimiser moments, densification state and every RNG state, so
 a resumed run continues exactly like an uninterrupted one. Ctrl-C (SIGINT) or SIGTERM
 writes a checkpoint at the current step and stops with :class:`TrainingInterrupted`.
@@ -40,6 +45,7 @@ from omnire.optim import Optimizers
 from omnire.rundir import RunDirectory, RunDirectoryError, RunInfo, find_checkpoint, step_of
 from omnire.runconfig import TrainConfig, TrainerConfig, absolute_argv
 from omnire.runtime import Reconstruction, parse_recorded_args
+from omnire.schedule import Schedule
 from omnire.strategy import AbsGradStrategy
 
 __all__ = ["STEP_STAGES", "StepState", "TrainConfig", "Trainer", "TrainerConfig", "TrainingError",
@@ -68,8 +74,8 @@ STEP_STAGES: tuple[str, ...] = ("prepare", "nodes", "render", "loss", "backward"
                                 "densify")
 """The stages of one training step, in order (each is ``Trainer.stage_<name>``):
 
-- ``prepare``: the SH bands stored up to the step's degree, the view's camera at the step's
-  resolution and its moment;
+- ``prepare``: the step's schedule step (:mod:`omnire.schedule`), the SH bands stored up to
+  its degree, the view's camera at its resolution and its moment;
 - ``nodes``: every Gaussian node's output at the moment (``Reconstruction.drawn`` +
   ``node_outputs``);
 - ``render``: rasterizer forward and environment (``Reconstruction.render_outputs``);
@@ -77,7 +83,8 @@ STEP_STAGES: tuple[str, ...] = ("prepare", "nodes", "render", "loss", "backward"
 - ``backward``: ``loss.backward()`` (rasterizer backward, autograd of nodes and losses);
 - ``densify_stats``: the AbsGrad statistics (:meth:`AbsGradStrategy.accumulate`);
 - ``optimizer``: the optimisers' step and ``zero_grad``; the step counter advances;
-- ``densify``: densification and pruning when the schedule says so (:meth:`AbsGradStrategy.step`).
+- ``densify``: the schedule step reached (the step count, or the clock's on a time budget);
+  densification and pruning when the schedule says so (:meth:`AbsGradStrategy.step`).
 """
 
 
@@ -86,6 +93,7 @@ class StepState:
     """What one training step carries from stage to stage (filled in stage order)."""
 
     view: View
+    schedule_step: int = 0
     factor: int = 1
     camera: Optional[Camera] = None
     time: Optional[SceneTime] = None
@@ -155,20 +163,25 @@ class Trainer:
             if weight != 0:
                 self.losses[name] = (plugins.losses.get(name).fn, weight)
         self.model = self.recon.model
-        self.optimizers = Optimizers(self.model.optimizable(), tc.max_steps)
-        self.strategy = AbsGradStrategy(config.method.densify, self.model.scene_radius, tc.max_steps)
+        self.schedule = Schedule.of(tc.max_steps, tc.max_seconds)
+        self.optimizers = Optimizers(self.model.optimizable(), self.schedule.steps)
+        self.strategy = AbsGradStrategy(config.method.densify, self.model.scene_radius, self.schedule.steps)
+        self.densify_stop: Optional[dict] = None  # where growth stopped: step, schedule_step, train_seconds
         # sky masks only feed the opacity loss, which only means something with a sky node
         self.use_sky_masks = bool(self.model.environment_nodes()) and "opacity" in self.losses
         self.sampler = torch.Generator().manual_seed(tc.seed + 1)
         self.train_views = self.scene.views(self.scene.train_frames)
         self.test_views = self.scene.views(self.scene.test_frames)
         self.train_seconds = 0.0
+        self._step_started = time.perf_counter()  # the current step's start (the schedule's clock)
         self._sh_bands_degree: Optional[int] = None  # the degree fit_sh_bands last stored bands for
         self.observers: list = []
         self._stop_signal: Optional[int] = None
         if resume_state is not None:
             self.load_state(resume_state)
             self.run.truncate_metrics(self.step)
+        elif self.schedule.timed:
+            self.recon.schedule_step = self.schedule.position(self.step, self.train_seconds)
 
     # ------------------------------------------------------------------ run directory
     def _open_run_directory(self, scene: Optional[SceneData]) -> tuple[RunDirectory, Optional[dict]]:
@@ -211,7 +224,8 @@ class Trainer:
                 raise ConfigError(f"--trainer.resume: the {what} differ from the recorded run's: "
                                   + ", ".join(f"{k}: {db.get(k)!r} -> {da.get(k)!r}" for k in changed[:6]))
 
-    def write_run_info(self) -> None:
+    def write_run_info(self, schedule: Optional[dict] = None) -> None:
+        """Write run.json; ``schedule``: what :meth:`schedule_record` says (default: the plan)."""
         if self.run is None:
             return
         cwd = Path.cwd()
@@ -224,6 +238,7 @@ class Trainer:
             "plugins": [[n, p.distribution, p.version] for n, p in self.plugins.loaded],
             "settings": {"method": _comparable(self.config.method),
                          "dataparser": _comparable(self.config.dataparser)},
+            "schedule": schedule if schedule is not None else self.schedule_plan(),
         })
         atomic_write_text(self.run.info_path, info.to_json())
 
@@ -236,8 +251,21 @@ class Trainer:
     def run_dir(self) -> Optional[Path]:
         return None if self.run is None else self.run.path
 
+    def schedule_plan(self) -> dict:
+        """The schedule the run follows: :meth:`Schedule.describe` and the schedule step where
+        densification stops growing."""
+        return {**self.schedule.describe(), "densify_stop_schedule_step": self.strategy.refine_stop}
+
+    def schedule_record(self) -> dict:
+        """The schedule as run so far: the plan, the steps, training seconds and schedule step
+        reached, where densification stopped growing (None: not yet) and every learning rate
+        of the last step."""
+        return {**self.schedule_plan(), "steps": self.step, "train_seconds": self.train_seconds,
+                "schedule_step": self.recon.schedule_step, "densify_stopped": self.densify_stop,
+                "final_lr": self.optimizers.learning_rates()}
+
     def sh_degree(self) -> int:
-        return self.recon.sh_degree(self.step)
+        return self.recon.sh_degree()
 
     def fit_sh_bands(self, discard_unused: bool = False) -> dict[str, tuple[int, int]]:
         """Store the nodes' SH bands up to the current degree (omnire/shbands.py): columns
@@ -283,15 +311,16 @@ class Trainer:
             sky_mask=obs.sky_mask(view, factor) if self.use_sky_masks else None,
             sky_trusted=obs.sky_trusted(view, factor) if self.use_sky_masks else None,
             scene_pixels=obs.scene_pixels(view, factor),
-            step=self.step,
+            step=self.recon.schedule_step,
             ssim=self.model.rasterizer.ssim_map if "ssim" in self.model.capabilities else ssim_map,
         )
 
     def resolution_factor(self, step: Optional[int] = None) -> int:
-        """Training images are rendered at 1 / this of their resolution at ``step`` (default:
-        the current step); see :mod:`omnire.resolution`."""
+        """Training images are rendered at 1 / this of their resolution at schedule step
+        ``step`` (default: the current one); see :mod:`omnire.resolution`."""
         m = self.config.method
-        return downscale_factor(self.step if step is None else step, m.num_downscales, m.resolution_schedule)
+        return downscale_factor(self.recon.schedule_step if step is None else step, m.num_downscales,
+                                m.resolution_schedule)
 
     def sample_view(self) -> View:
         """The next training view (uniform over the training views, seeded)."""
@@ -326,6 +355,7 @@ class Trainer:
         stages of :data:`STEP_STAGES`; ``on_stage(name)`` is called after each (e.g. a
         benchmark's clock). Returns the step's loss, PSNR and loss terms."""
         state = StepState(self.sample_view() if view is None else view)
+        self._step_started = time.perf_counter()
         for name in STEP_STAGES:
             getattr(self, f"stage_{name}")(state)
             if on_stage is not None:
@@ -333,16 +363,17 @@ class Trainer:
         return state.stats
 
     def stage_prepare(self, s: StepState) -> None:
+        s.schedule_step = self.recon.schedule_step
         self.fit_sh_bands()
         s.factor = self.resolution_factor()
         s.camera = self.recon.camera(s.view).downscaled(s.factor)
         s.time = self.recon.time(s.view.frame)
 
     def stage_nodes(self, s: StepState) -> None:
-        s.parts = self.recon.node_outputs(self.recon.drawn(s.time), s.camera, s.time, self.step)
+        s.parts = self.recon.node_outputs(self.recon.drawn(s.time), s.camera, s.time, s.schedule_step)
 
     def stage_render(self, s: StepState) -> None:
-        s.result = self.recon.render_outputs(s.parts, s.camera, s.time, step=self.step)
+        s.result = self.recon.render_outputs(s.parts, s.camera, s.time, step=s.schedule_step)
 
     def stage_loss(self, s: StepState) -> None:
         s.context = self.loss_context(s.view, s.result, s.factor)
@@ -367,16 +398,29 @@ class Trainer:
                                  s.camera.width, s.camera.height)
 
     def stage_optimizer(self, s: StepState) -> None:
-        self.optimizers.step(self.step)
+        self.optimizers.step(s.schedule_step)
         self.optimizers.zero_grad()
         self.recon.step += 1
 
     def stage_densify(self, s: StepState) -> None:
-        self.strategy.step(self.model.gaussian_nodes(), self.optimizers, self.step)
+        seconds = self.train_seconds + (time.perf_counter() - self._step_started)
+        # the clock's schedule step on a time budget (never back: a run resumed with a longer
+        # budget waits for the clock); else one more (the step count, unless the run continues
+        # a checkpoint whose schedule was ahead of its steps)
+        if self.schedule.timed:
+            now = max(s.schedule_step, self.schedule.position(self.step, seconds))
+        else:
+            now = s.schedule_step + 1
+        self.strategy.step(self.model.gaussian_nodes(), self.optimizers, self.step, now, since=s.schedule_step)
+        if self.densify_stop is None and s.schedule_step < self.strategy.refine_stop <= now:
+            self.densify_stop = {"step": self.step, "schedule_step": now, "train_seconds": seconds}
+        if self.schedule.timed or now != self.step:
+            self.recon.schedule_step = now
 
     def train(self) -> dict:
-        """Train to ``max_steps`` (or ``max_seconds``), checkpointing and evaluating on the way;
-        returns the final evaluation."""
+        """Train until the budget is spent (``max_steps`` and/or ``max_seconds``: see
+        :mod:`omnire.schedule`), checkpointing and evaluating on the way; returns the final
+        evaluation, with the schedule as run under ``schedule``."""
         if self.run is None:
             raise ValueError("Trainer.train needs a run directory (persist=True)")
         tc = self.config.trainer
@@ -407,19 +451,27 @@ class Trainer:
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
         metrics_path = self.run.metrics_path
+        schedule = self.schedule
+        # the bar counts steps for a step budget, schedule steps (the clock's) for a time budget
+        unit = "schedule steps, step {task.fields[step]}  " if schedule.timed else ""
         progress = Progress(
             TextColumn("[bold]train[/]"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-            TextColumn("loss {task.fields[loss]:.4f}  psnr {task.fields[psnr]:.2f}  {task.fields[its]:.2f} it/s  "
+            TextColumn(unit + "loss {task.fields[loss]:.4f}  psnr {task.fields[psnr]:.2f}  {task.fields[its]:.2f} it/s  "
                        "{task.fields[ng]} G"),
             TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), disable=not tc.progress, transient=False,
         )
+
+        def done() -> int:
+            return self.recon.schedule_step if schedule.timed else self.step
+
         train_seconds = self.train_seconds  # time in training steps only (evaluation excluded), resumed runs included
         diverged: list[str] = []
         with progress, open(metrics_path, "a") as metrics:
-            task = progress.add_task("train", total=tc.max_steps, completed=self.step, loss=0.0, psnr=0.0, its=0.0,
+            task = progress.add_task("train", total=schedule.steps if schedule.timed else schedule.max_steps,
+                                     completed=done(), loss=0.0, psnr=0.0, its=0.0, step=self.step,
                                      ng=self.model.num_gaussians())
             window_n, window_seconds, window_psnr = 0, 0.0, []
-            while self.step < tc.max_steps and not (tc.max_seconds and train_seconds >= tc.max_seconds):
+            while not schedule.finished(self.step, train_seconds):
                 if self._stop_signal is not None:
                     self._interrupt()
                 t0 = time.perf_counter()
@@ -427,13 +479,15 @@ class Trainer:
                 dt = time.perf_counter() - t0
                 train_seconds += dt
                 self.train_seconds = train_seconds
+                last = schedule.finished(self.step, train_seconds)
                 window_seconds += dt
                 window_n += 1
                 window_psnr.append(stats["psnr"])
-                if self.step % tc.log_every == 0 or self.step == tc.max_steps:
+                if self.step % tc.log_every == 0 or last:
                     its = window_n / max(window_seconds, 1e-9)
                     record = {"step": self.step, "wall": train_seconds, "its": its,
-                              "num_gaussians": self.model.num_gaussians(), **stats}
+                              "num_gaussians": self.model.num_gaussians(), "schedule_step": self.recon.schedule_step,
+                              **stats}
                     metrics.write(json.dumps(record) + "\n")
                     metrics.flush()
                     mean_psnr = sum(window_psnr) / len(window_psnr)
@@ -443,28 +497,30 @@ class Trainer:
                                                "(learning rates too high?)")
                         log.warning("%s: the run looks diverged", diverged[0])
                     window_seconds, window_n, window_psnr = 0.0, 0, []
-                    progress.update(task, completed=self.step, loss=stats["loss"], psnr=stats["psnr"], its=its,
-                                    ng=record["num_gaussians"])
-                if self.observers and (self.step % tc.observe_every == 0 or self.step == tc.max_steps):
+                    progress.update(task, completed=done(), loss=stats["loss"], psnr=stats["psnr"], its=its,
+                                    step=self.step, ng=record["num_gaussians"])
+                if self.observers and (self.step % tc.observe_every == 0 or last):
                     for observer in self.observers:
                         observer.on_step(self.step, stats)
-                if tc.eval_every and self.step % tc.eval_every == 0 and self.step < tc.max_steps:
+                if tc.eval_every and self.step % tc.eval_every == 0 and not last:
                     evaluation = self.evaluate()
                     metrics.write(json.dumps({"step": self.step, "wall": train_seconds, "eval": evaluation}) + "\n")
-                if self.step % tc.checkpoint_every == 0 or self.step == tc.max_steps:
+                if self.step % tc.checkpoint_every == 0 or last:
                     self.save_checkpoint()
-            progress.update(task, completed=self.step)
+            progress.update(task, completed=done(), step=self.step)
         if self._stop_signal is not None:
             self._interrupt()
-        if self.step % tc.checkpoint_every != 0 and self.step != tc.max_steps:
-            self.save_checkpoint()  # stopped by the time budget
+        if not self.run.checkpoint_path(self.step).is_file():
+            self.save_checkpoint()  # e.g. a branch of a finished run: its directory holds no checkpoint yet
         final = self.evaluate()
         final["train_seconds"] = train_seconds
         final["peak_rss_mb"] = peak_rss_mb()
+        final["schedule"] = self.schedule_record()
         if diverged:
             final["warnings"] = diverged
         with open(metrics_path, "a") as metrics:
             metrics.write(json.dumps({"step": self.step, "wall": train_seconds, "eval": final, "final": True}) + "\n")
+        self.write_run_info(final["schedule"])
         return final
 
     def _interrupt(self) -> None:
@@ -498,6 +554,8 @@ class Trainer:
             "rng_torch": torch.get_rng_state(),
             "rng_sampler": self.sampler.get_state(),
             "train_seconds": self.train_seconds,
+            "schedule_step": None if self.recon.schedule_step == self.step else self.recon.schedule_step,
+            "densify_stop": self.densify_stop,
         }
 
     def save_checkpoint(self) -> Path:
@@ -515,14 +573,18 @@ class Trainer:
         return path
 
     def load_state(self, state: dict) -> None:
-        """Continue from a checkpoint state (model, optimisers, densification, RNGs)."""
+        """Continue from a checkpoint state (model, optimisers, densification, RNGs, the
+        schedule's clock)."""
         self.recon.load_state(state)
-        self.optimizers = Optimizers(self.model.optimizable(), self.config.trainer.max_steps)
+        self.optimizers = Optimizers(self.model.optimizable(), self.schedule.steps)
         self.optimizers.load_state_dict(state["optimizers"])
         self.strategy.load_state_dict(state["strategy"])
         torch.set_rng_state(state["rng_torch"])
         self.sampler.set_state(state["rng_sampler"])
         self.train_seconds = float(state.get("train_seconds", 0.0))
+        self.densify_stop = state.get("densify_stop")
+        if self.schedule.timed and state.get("schedule_step") is None:  # a step budget's, continued on the clock
+            self.recon.schedule_step = self.schedule.position(self.step, self.train_seconds)
         self._sh_bands_degree = None
 
 

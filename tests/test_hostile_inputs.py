@@ -207,6 +207,7 @@ BAD_FLAGS = {
     "zero log interval": (["--trainer.log-every", "0"], "--trainer.log-every"),
     "zero checkpoint interval": (["--trainer.checkpoint-every", "0"], "--trainer.checkpoint-every"),
     "negative seconds": (["--trainer.max-seconds", "-1"], "--trainer.max-seconds"),
+    "infinite seconds": (["--trainer.max-seconds", "inf"], "--trainer.max-seconds inf: must be a finite number"),
     "negative threads": (["--trainer.threads", "-2"], "--trainer.threads"),
     "cuda on a cpu build": (["--trainer.device", "cuda"], "--trainer.device"),
     "unknown device": (["--trainer.device", "banana"], "--trainer.device"),

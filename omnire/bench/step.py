@@ -61,7 +61,8 @@ class StepBenchArgs:
     """Background Gaussians to benchmark with (0: as initialised, or as in --checkpoint)."""
     at_step: Optional[int] = None
     """Training step the benchmark runs at (SH bands, learning-rate schedules; default: the
-    checkpoint's step, or 0)."""
+    checkpoint's step, or 0; a checkpoint of a time budget: the schedule step it stopped at,
+    omnire/schedule.py)."""
     warmup: int = 3
     """Untimed steps per path."""
     steps: int = 20
@@ -153,8 +154,9 @@ def run(args: StepBenchArgs, plugins) -> dict:
         load_run_state(trainer, args.checkpoint)
     if args.gaussians:
         resize_background(trainer, args.gaussians, args.seed)
-    at_step = args.at_step if args.at_step is not None else trainer.step  # 0, or the checkpoint's
-    trainer.recon.step = at_step
+    if args.at_step is not None:
+        trainer.recon.step, trainer.recon.schedule_step = args.at_step, None  # its schedules as at that step
+    at_step = trainer.recon.schedule_step  # 0, the checkpoint's (a time budget's: where its schedule stopped)
     # SH bands as training at ``at_step`` stores them (omnire/shbands.py); a checkpoint of a
     # later degree loses its higher bands here, which that step would not have yet
     trainer.fit_sh_bands(discard_unused=True)

@@ -47,11 +47,13 @@ class TrainBenchArgs:
     method_args: str = ""
     """Extra flags for every method as one string: --method-args="--method.rasterizer cpu"."""
     steps: int = 2000
-    """Iteration budget per method (learning-rate schedules span it)."""
+    """Step budget per method, which the schedules span (0: none; --seconds alone then lays
+    the default schedule over the time budget, omnire/schedule.py)."""
     seconds: float = 0.0
-    """Wall-clock training budget per method (0: none); training stops at whichever comes first."""
+    """Training-time budget per method (0: none). With --steps, training ends at whichever
+    is spent first and the schedules fit it (the larger of the two fractions spent)."""
     checkpoints: int = 4
-    """Evaluations along the way (evenly spaced steps)."""
+    """Evaluations along the way (evenly spaced steps; with --steps 0 only the final one)."""
     threads: int = 0
     """torch threads per run (0: default)."""
     output: Path = Path("outputs/bench/train")
@@ -80,11 +82,13 @@ def parse_entry(entry: str) -> tuple[str, str, list[str]]:
 def _command(args: TrainBenchArgs, entry: str) -> list[str]:
     """The ``omnire train`` command line of one ``--methods`` entry."""
     label, method, flags = parse_entry(entry)
-    eval_every = max(1, args.steps // max(1, args.checkpoints))
+    steps = []
+    if args.steps:
+        steps = ["--trainer.max-steps", str(args.steps), "--trainer.checkpoint-every", str(args.steps),
+                 "--trainer.eval-every", str(max(1, args.steps // max(1, args.checkpoints)))]
     return [sys.executable, "-m", "omnire.cli", "train", method, args.dataparser, "--data", str(args.data),
             *shlex.split(args.dataparser_args), *shlex.split(args.method_args), *flags,
-            "--trainer.max-steps", str(args.steps), "--trainer.max-seconds", str(args.seconds),
-            "--trainer.eval-every", str(eval_every), "--trainer.checkpoint-every", str(args.steps),
+            *steps, "--trainer.max-seconds", str(args.seconds),
             "--trainer.threads", str(args.threads), "--trainer.output-dir", str(args.output / "runs"),
             "--trainer.run-name", label, "--trainer.no-progress"]
 
@@ -126,8 +130,14 @@ def _fmt(v, d=2) -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{d}f}"
 
 
+def budget_text(args: TrainBenchArgs) -> str:
+    """``2000 steps``, ``600 s of training`` or ``3200 steps or 600 s of training``."""
+    return " or ".join(([f"{args.steps} steps"] if args.steps else [])
+                       + ([f"{args.seconds:.0f} s of training"] if args.seconds else []))
+
+
 def markdown_table(results: list[dict], args: TrainBenchArgs) -> str:
-    budget = f"{args.steps} steps" + (f" or {args.seconds:.0f} s of training" if args.seconds else "")
+    budget = budget_text(args)
     lines = [
         f"Scene: `{args.data}` ({args.dataparser} {args.dataparser_args}); budget per method: {budget}; "
         f"same frames, resolution and split for every method.",
@@ -243,11 +253,14 @@ def main(argv: list[str], plugins) -> int:
         kinds = {"data": Path, "dataparser": str, "dataparser_args": str, "steps": int, "seconds": float}
         kept = {k: (None if v is None else kinds[k](v)) for k, v in saved["args"].items() if k in kinds}
         return _report(dataclasses.replace(args, **kept), saved["results"], console)
-    if args.dataparser is None or args.data is None:
-        from omnire.errors import ConfigError
+    from omnire.errors import ConfigError
 
+    if args.dataparser is None or args.data is None:
         raise ConfigError("omnire bench train: --dataparser and --data are required (e.g. --dataparser pandaset "
                           "--data data/demo/pandaset_002)")
+    if args.steps < 0 or args.seconds < 0 or not (args.steps or args.seconds > 0):
+        raise ConfigError(f"omnire bench train: --steps {args.steps} --seconds {args.seconds}: expected a step "
+                          "budget, a time budget or both (>= 0, not both 0)")
     methods = list(args.methods) or plugins.methods.names()
     try:
         labels = [parse_entry(m)[0] for m in methods]
@@ -270,7 +283,7 @@ def main(argv: list[str], plugins) -> int:
             console.print(f"[bold]{m}[/]: reusing the earlier result (same command)")
             results.append(kept)
         else:
-            console.print(f"[bold]{m}[/]: training ({args.steps} steps)...")
+            console.print(f"[bold]{m}[/]: training ({budget_text(args)})...")
             r = _run_method(args, m)
             results.append(r)
             status = "ok" if r["exit_code"] == 0 else f"FAILED: {r.get('error', '')[-300:]}"

@@ -13,8 +13,10 @@ Contract of a :class:`Node`:
   they came from), or None when nothing of the node is present (absent nodes cost
   nothing). ``camera`` is the camera being rendered: nodes with costly per-Gaussian work
   may skip Gaussians it cannot see (the rasterizer culls anyway); None means "no camera":
-  return everything. ``step`` is the training step (None outside training: render the
-  fully trained model); nodes use it for schedules such as warm-ups.
+  return everything. ``step`` is the schedule step of training (None outside training:
+  render the fully trained model); nodes use it for schedules such as warm-ups, and so
+  follow a time budget like every schedule (:mod:`omnire.schedule`: it is the training step
+  for a step budget).
 - ``regularization(output)`` returns node-specific loss terms computed from what the node
   produced for the rendered view (nothing is kept between calls).
 - ``param_groups()`` lists learning-rate groups, per-Gaussian ones by key.

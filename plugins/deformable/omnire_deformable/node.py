@@ -60,7 +60,8 @@ class DeformableConfig(BoxActorConfig):
     embedding_dim: int = 16
     """Per-instance embedding size."""
     warmup_steps: int = 500
-    """Steps before the deformation switches on (reference: 3000 of 30k)."""
+    """Steps before the deformation switches on (reference: 3000 of 30k); steps of the training
+    schedule (the clock's on a time budget)."""
     box_margin: float = 0.2
     """The box regulariser allows Gaussians this fraction beyond the box half size."""
     lr_deform: float = 8e-3

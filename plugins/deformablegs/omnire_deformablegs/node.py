@@ -75,7 +75,8 @@ class DeformableFieldConfig(BackgroundConfig):
     time_freqs: int = 10
     """Positional-encoding frequencies for time."""
     warmup_steps: int = 500
-    """Training steps with the deformation off (canonical Gaussians only; paper: 3000 of 40k)."""
+    """Steps with the deformation off (canonical Gaussians only; paper: 3000 of 40k); steps of
+    the training schedule, as every step count here (the clock's on a time budget)."""
     ast_steps: int = 20_000
     """Annealed smooth training: time noise decays linearly to 0 over these steps (0: off)."""
     ast_beta: float = 0.1
