@@ -1,0 +1,99 @@
+"""LiDAR rendered with a scenario's edits (Reconstruction.render_sweep with the Simulation as
+its edits): a removed car's points vanish, a moved car's points go with its box, an actor
+inserted from another run casts points on its box. The street of sim_scene.py, built with
+LiDAR features (untrained Gaussians: every test compares sweeps of the same Gaussians)."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from omnire.api import BeamModel, LidarConfig, Reconstruction, beam_model_sweep, fixed_path, sweep_points
+from omnire.observations import Observations
+from omnire_sim import Simulation, parse_scenario
+from sim_scene import small_omnire, street_scene
+
+# The sensor 1.5 m above the tiny scene's ground (z = -1.5), at the cameras' start.
+SENSOR = np.eye(4)
+SENSOR[:3, 3] = (0.0, 0.0, 0.0)
+BEAMS = BeamModel(np.linspace(-30.0, 5.0, 36), 0.5, 40.0, 0.3, "test")
+MARGIN = 0.3  # metres around a box within which its points count as on it
+
+
+def build_with_lidar(scene, plugins, seed: int = 0) -> Reconstruction:
+    method = dataclasses.replace(small_omnire(plugins), rasterizer="torch", lidar=LidarConfig(enabled=True))
+    torch.manual_seed(seed)
+    device = torch.device("cpu")
+    return Reconstruction.build(method, scene, plugins, device, Observations(scene, device).images, seed=seed)
+
+
+@pytest.fixture(scope="module")
+def lidar_street(tmp_path_factory, plugins):
+    torch.set_num_threads(1)
+    return build_with_lidar(street_scene(tmp_path_factory.mktemp("lidar-street")), plugins)
+
+
+def rendered(recon, text: str, frame: int = 2, assets=None):
+    """(render, sweep) of every ray of BEAMS from SENSOR at ``frame`` with the scenario ``text``."""
+    sim = Simulation(recon, parse_scenario(text, "test.toml"), assets=assets)
+    sweep = beam_model_sweep(BEAMS, recon.time(frame).seconds)
+    with torch.no_grad():
+        return recon.render_sweep(sweep, fixed_path(SENSOR), 1, edits=sim), sweep
+
+
+def points(recon, text: str, frame: int = 2, assets=None) -> np.ndarray:
+    """(P, 3) the point cloud of :func:`rendered` (omnire.api.sweep_points)."""
+    render, sweep = rendered(recon, text, frame, assets)
+    p = sweep_points(render, sweep, fixed_path(SENSOR), 1)
+    return np.stack([p["x"], p["y"], p["z"]], 1).astype(np.float64)
+
+
+def in_box(p: np.ndarray, centre, size, margin: float = MARGIN, above_ground: float = 0.0) -> np.ndarray:
+    """(N,) bool: inside the axis-aligned box (+ margin), and above its bottom by ``above_ground``."""
+    lo, hi = np.asarray(centre) - np.asarray(size) / 2, np.asarray(centre) + np.asarray(size) / 2
+    inside = np.all((p >= lo - margin) & (p <= hi + margin), axis=1)
+    return inside & (p[:, 2] > lo[2] + above_ground)
+
+
+CAR2_CENTRE, CAR2_SIZE = (9.0, -2.6, -0.75), (4.2, 1.8, 1.5)
+
+
+def test_a_removed_cars_points_vanish(lidar_street):
+    before = points(lidar_street, "")
+    after = points(lidar_street, '[[actor]]\ntrack = "car-2"\nremove = true\n')
+    # above the ground plane (z = -1.5): what is left there after the removal is no car
+    assert in_box(before, CAR2_CENTRE, CAR2_SIZE, 0.0, above_ground=0.3).sum() > 20
+    assert in_box(after, CAR2_CENTRE, CAR2_SIZE, 0.0, above_ground=0.3).sum() == 0
+
+
+def test_a_moved_car_takes_its_points_along(lidar_street):
+    offset = np.array([0.0, 4.5, 0.0])  # onto the empty left lane
+    before = points(lidar_street, "")
+    after = points(lidar_street, '[[actor]]\ntrack = "car-2"\noffset_world = [0.0, 4.5, 0.0]\n')
+    new_centre = np.asarray(CAR2_CENTRE) + offset
+    assert in_box(after, CAR2_CENTRE, CAR2_SIZE, 0.0, above_ground=0.3).sum() == 0
+    moved_there = in_box(after, new_centre, CAR2_SIZE, MARGIN, above_ground=0.3).sum()
+    was_there = in_box(before, new_centre, CAR2_SIZE, MARGIN, above_ground=0.3).sum()
+    assert moved_there > 20 + was_there
+
+
+def test_an_inserted_actor_casts_points_on_its_box(lidar_street, plugins, tmp_path):
+    """car-1 of the street (run A) inserted into a street without actors (run B): the points
+    that differ from B's own sweep lie on the guest's box."""
+    recon_b = build_with_lidar(street_scene(tmp_path / "b", with_actors=False), plugins, seed=3)
+    centre, yaw = (6.0, 2.0, -0.75), 0.0
+    text = (f'[[insert]]\nid = "guest"\nrun = "run-a"\ntrack = "car-1"\n'
+            f'trajectory = [{{t = 0.0, x = {centre[0]}, y = {centre[1]}, z = {centre[2]}, yaw = {yaw}}}]\n')
+    run_a = parse_scenario(text, "test.toml").resolve_path("run-a").resolve()
+    size = lidar_street.scene.tracks[0].size
+    assert in_box(points(recon_b, ""), centre, size).sum() == 0
+    assert in_box(points(recon_b, text, assets={run_a: lidar_street}), centre, size).sum() > 20
+    # ray by ray: every ray that now returns nearer than before stops on the guest's box
+    plain, sweep = rendered(recon_b, "")
+    guest, _ = rendered(recon_b, text, assets={run_a: lidar_street})
+    r0, r1 = plain.median_range.numpy(), guest.median_range.numpy()
+    hit = (guest.ray_drop.numpy() < 0.5) & ((plain.ray_drop.numpy() >= 0.5) | (r1 < r0 - 0.05))
+    on = in_box(sweep.directions()[hit] * r1[hit, None] + SENSOR[:3, 3], centre, size)
+    assert hit.sum() > 20 and on.mean() > 0.95, f"{on.mean():.3f} of {hit.sum()} new returns on the box"
