@@ -73,6 +73,14 @@ from omnire.io.images import write_png
 from omnire.io.outputs import OutputError, check_location, check_output_dir, staged_directory, staged_files, writing
 from omnire.lidarmodel import LIDAR_KEY, LidarConfig, LidarRender
 from omnire.lidarpoints import POINT_FIELDS, sweep_points, write_point_cloud
+from omnire.lidarprojection import (
+    SphereTiles,
+    SphericalSplats,
+    max_response_range,
+    project_lidar,
+    ray_directions,
+    wrap_degrees,
+)
 from omnire.lidarsweep import (
     SensorPath,
     SweepRays,
@@ -146,12 +154,17 @@ from omnire.rasterization import (
     TRANSMITTANCE_MIN,
     FusedTrainingRasterizer,
     InferenceRasterizer,
+    LidarRasterizer,
+    LidarRays,
+    LidarRenderOutput,
+    LidarSettings,
     RasterInputError,
     Rasterizer,
     RasterSettings,
     RenderOutput,
     Splats,
     SsimRasterizer,
+    check_lidar_inputs,
     check_raster_inputs,
 )
 from omnire.registration import Lazy, LazyTargetError, lazy

@@ -135,7 +135,8 @@ class RasterizerSpec(Spec):
     builds it. ``auto`` selection takes the available one with the highest priority.
 
     ``capabilities``: the optional paths it offers beyond ``rasterize``, names of
-    :data:`omnire.rasterization.CAPABILITIES` (``inference``, ``fused_training``, ``ssim``).
+    :data:`omnire.rasterization.CAPABILITIES` (``inference``, ``fused_training``, ``ssim``,
+    ``lidar``).
     An unknown name, or (when ``factory`` is the class) a declared path the class has no
     method for, refuses the spec here; a lazy factory's object is checked when built."""
 

@@ -40,13 +40,14 @@ def test_unknown_or_missing_capabilities_are_refused_at_registration():
         build_backend(lazy)
     backend = build_backend(RasterizerSpec("x", "", OnlyRasterize, _ok))
     assert backend.capabilities == frozenset() and backend.name == "only"
-    assert summarize_paths(frozenset()) == "rasterize only; missing: inference, fused_training, ssim"
-    assert describe_paths(frozenset(CAPABILITIES)).count("native") == 3
+    assert summarize_paths(frozenset()) == "rasterize only; missing: inference, fused_training, ssim, lidar"
+    assert describe_paths(frozenset(CAPABILITIES)).count("native") == 4
+    assert "lidar: missing, so LiDAR sweeps cannot be rendered" in describe_paths(frozenset())
 
 
 def test_builtin_backends_declare_what_they_implement():
     plugins = load_plugins()
-    assert plugins.rasterizers.get("torch").capabilities == frozenset()
+    assert plugins.rasterizers.get("torch").capabilities == frozenset({"lidar"})
     assert plugins.rasterizers.get("cpu").capabilities == frozenset(CAPABILITIES)
     assert plugins.rasterizers.get("gsplat").capabilities == frozenset()
 
@@ -105,9 +106,11 @@ def test_plugins_lists_paths_and_refuses_an_overclaiming_backend(installed_raste
                          env=dict(os.environ, COLUMNS="400"), timeout=600)  # wide: one table row per line
     assert out.returncode == 0, out.stderr
     line = next(l for l in out.stdout.splitlines() if "minimal" in l and "omnire-test-minraster" in l)
-    assert "rasterize only; missing: inference, fused_training, ssim" in line
+    assert "rasterize only; missing: inference, fused_training, ssim, lidar" in line
     cpu = next(l for l in out.stdout.splitlines() if l.strip("│ ").startswith("cpu "))
-    assert "rasterize + inference, fused_training, ssim" in cpu
+    assert "rasterize + inference, fused_training, ssim, lidar" in cpu
+    torch_row = next(l for l in out.stdout.splitlines() if l.strip("│ ").startswith("torch "))
+    assert "rasterize + lidar; missing: inference, fused_training, ssim" in torch_row
     assert "omnire-test-claims" in out.stdout and "Claims has no rasterize_gaussians" in out.stdout
 
 

@@ -17,6 +17,15 @@ anisotropic scales whose median 1-sigma footprint s (pixels) is chosen so that
 N * pi * (2 s)^2 = coverage * H * W (default coverage 8: each pixel inside the 2-sigma
 ellipse of ~8 Gaussians), random rotations, opacities U(0.05, 0.95), RGB colours.
 
+``--lidar`` times ``rasterize_lidar`` instead (the rasterizers declaring the ``lidar``
+capability): each case is a Gaussian count x a beam grid BEAMSxAZIMUTHS (``--lidar-rays``,
+default 64x1800: a Pandar64 revolution at 0.2 degrees, 115,200 rays, elevations evenly
+spread over -25 to +15 degrees), Gaussians at 2-60 m around the sensor within that band
+with angular footprints chosen like the camera's (N * pi * (2 s)^2 = coverage x the band's
+solid angle in degrees^2), 2 feature channels; the backward is that of a weighted sum of
+range, median range, alpha and features. Rows record the grid as height (beams) x width
+(azimuths).
+
 A per-rasterizer time cap skips cases whose estimated run time (from the largest measured
 smaller case, scaled by the larger of the Gaussian-count and pixel-count ratios) exceeds it; the child also stops early if its
 first iteration shows the cap would be exceeded.
@@ -32,6 +41,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Optional
 
 import tyro
 
@@ -51,8 +61,9 @@ class BenchArgs:
     """Timed iterations per case (medians are reported)."""
     warmup: int = 1
     """Untimed iterations per case."""
-    output: Path = Path("outputs/bench/raster.json")
-    """Where the JSON results go (written atomically)."""
+    output: Optional[Path] = None
+    """Where the JSON results go (written atomically); default outputs/bench/raster.json,
+    with --lidar outputs/bench/raster_lidar.json."""
     rasterizers: tuple[str, ...] = ()
     """Rasterizer names; empty = every installed rasterizer available on the device."""
     device: str = "cpu"
@@ -65,6 +76,10 @@ class BenchArgs:
     """Seconds allowed per (rasterizer, case); longer estimated cases are skipped."""
     seed: int = 0
     """Scene seed."""
+    lidar: bool = False
+    """Time rasterize_lidar on beam grids (--lidar-rays) instead of camera images."""
+    lidar_rays: tuple[str, ...] = ("64x1800",)
+    """With --lidar: beam grids as BEAMSxAZIMUTHS."""
     reference: str = ""
     """Rasterizer the others' speed-ups are measured against (default: the benchmarked one of
     lowest priority, the reference implementation)."""
@@ -98,6 +113,34 @@ def make_scene(n: int, height: int, width: int, coverage: float = 8.0, seed: int
     return {k: t.to(device) for k, t in out.items()}
 
 
+LIDAR_ELEVATIONS = (-25.0, 15.0)
+"""Elevation band (degrees) of the --lidar beam grids and scenes."""
+
+
+def make_lidar_scene(n: int, beams: int, azimuths: int, coverage: float = 8.0, seed: int = 0):
+    """Random Gaussians around a sensor at the origin and its beam grid (module docstring).
+    Returns dict of float32 tensors means (N,3), quats (N,4), scales (N,3), opacities (N,),
+    colors (N,2), and the LidarRays."""
+    import torch
+
+    from omnire.rasterization import LidarRays
+
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = LIDAR_ELEVATIONS
+    rng = torch.empty(n).uniform_(2.0, 60.0, generator=g)
+    az = torch.deg2rad(torch.empty(n).uniform_(0.0, 360.0, generator=g))
+    el = torch.deg2rad(torch.empty(n).uniform_(lo - 1.0, hi + 1.0, generator=g))
+    means = rng[:, None] * torch.stack([torch.cos(el) * torch.cos(az), torch.cos(el) * torch.sin(az), torch.sin(el)], -1)
+    s_deg = math.sqrt(coverage * 360.0 * (hi - lo) / (n * math.pi * 4.0))
+    scales = (rng * math.radians(s_deg))[:, None] * torch.exp(0.4 * torch.randn(n, 3, generator=g))
+    grid_az = (torch.arange(azimuths, dtype=torch.float64) * (360.0 / azimuths)).repeat(beams)
+    grid_el = torch.linspace(lo, hi, beams, dtype=torch.float64).repeat_interleave(azimuths)
+    rays = LidarRays(torch.eye(4), grid_az.float(), grid_el.float(), 0.3, 200.0)
+    return dict(means=means, quats=torch.randn(n, 4, generator=g), scales=scales,
+                opacities=torch.empty(n).uniform_(0.05, 0.95, generator=g), colors=torch.rand(n, 2, generator=g),
+                rays=rays)
+
+
 def _child(spec_json: str) -> None:
     """Run one case; print one JSON line with the result."""
     import torch
@@ -112,11 +155,22 @@ def _child(spec_json: str) -> None:
     plugins = load_plugins()
     rast = select_rasterizer(plugins, spec["rasterizer"], spec["device"])
     H, W = spec["height"], spec["width"]
-    scene = make_scene(spec["n"], H, W, spec["coverage"], spec["seed"], spec["device"])
     gen = torch.Generator().manual_seed(1)
-    w_rgb = torch.rand(H, W, 3, generator=gen).to(spec["device"])
-    w_depth = (0.01 * torch.rand(H, W, 1, generator=gen)).to(spec["device"])
-    w_alpha = torch.rand(H, W, 1, generator=gen).to(spec["device"])
+    if spec.get("lidar"):
+        from omnire.rasterization import LidarRays
+
+        scene = make_lidar_scene(spec["n"], H, W, spec["coverage"], spec["seed"])
+        rays = scene.pop("rays")
+        rays = LidarRays(*(t.to(spec["device"]) for t in (rays.sensor_to_world, rays.azimuth_deg, rays.elevation_deg)),
+                         rays.min_range, rays.max_range)
+        scene = {k: t.to(spec["device"]) for k, t in scene.items()}
+        weights = [(scale * torch.rand(len(rays), *shape, generator=gen)).to(spec["device"])
+                   for scale, shape in ((0.01, ()), (0.01, ()), (1.0, ()), (1.0, (2,)))]
+    else:
+        scene = make_scene(spec["n"], H, W, spec["coverage"], spec["seed"], spec["device"])
+        w_rgb = torch.rand(H, W, 3, generator=gen).to(spec["device"])
+        w_depth = (0.01 * torch.rand(H, W, 1, generator=gen)).to(spec["device"])
+        w_alpha = torch.rand(H, W, 1, generator=gen).to(spec["device"])
     sync = torch.cuda.synchronize if spec["device"].startswith("cuda") else (lambda: None)
     if spec["device"].startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
@@ -134,13 +188,20 @@ def _child(spec_json: str) -> None:
     for it in range(total):
         leaves = {k: v.detach().clone().requires_grad_(k not in ("viewmat", "K")) for k, v in scene.items()}
         splats = Splats(*(leaves[k] for k in ("means", "quats", "scales", "opacities", "colors")))
-        camera = Camera.from_world_to_cam(leaves["viewmat"], leaves["K"], W, H)
         sync()
-        t0 = time.perf_counter()
-        out = rast.rasterize(splats, camera)
-        sync()
-        t1 = time.perf_counter()
-        loss = (out.rgb * w_rgb).sum() + (out.depth * w_depth).sum() + (out.alpha * w_alpha).sum()
+        if spec.get("lidar"):
+            t0 = time.perf_counter()
+            out = rast.rasterize_lidar(splats, rays)
+            sync()
+            t1 = time.perf_counter()
+            loss = sum((o * w).sum() for o, w in zip((out.range, out.median_range, out.alpha, out.features), weights))
+        else:
+            camera = Camera.from_world_to_cam(leaves["viewmat"], leaves["K"], W, H)
+            t0 = time.perf_counter()
+            out = rast.rasterize(splats, camera)
+            sync()
+            t1 = time.perf_counter()
+            loss = (out.rgb * w_rgb).sum() + (out.depth * w_depth).sum() + (out.alpha * w_alpha).sum()
         loss.backward()
         sync()
         t2 = time.perf_counter()
@@ -213,15 +274,19 @@ def main(argv: list[str], plugins) -> int:
         if name not in plugins.rasterizers:
             console.print(f"[yellow]skip[/] {name}: not installed (installed: {', '.join(plugins.rasterizers.names())})")
             continue
-        ok, reason = plugins.rasterizers.get(name).available(device)
-        if ok:
+        spec = plugins.rasterizers.get(name)
+        ok, reason = spec.available(device)
+        if ok and args.lidar and "lidar" not in spec.capabilities:
+            console.print(f"[yellow]skip[/] {name}: no lidar capability")
+        elif ok:
             chosen.append(name)
         else:
             console.print(f"[yellow]skip[/] {name}: unavailable on {device}: {reason}")
     if not chosen:
         console.print("[red]no rasterizer to benchmark[/]")
         return 1
-    cases = sorted(((n, *parse_resolution(r)) for n in args.gaussians for r in args.resolutions),
+    grids = args.lidar_rays if args.lidar else args.resolutions
+    cases = sorted(((n, *parse_resolution(r)) for n in args.gaussians for r in grids),
                    key=lambda c: (c[0] * c[1] * c[2], c[0]))
     results = []
     for name in chosen:
@@ -239,7 +304,7 @@ def main(argv: list[str], plugins) -> int:
             else:
                 spec = dict(rasterizer=name, n=n, height=h, width=w, threads=threads, device=args.device,
                             warmup=args.warmup, repeats=args.repeats, coverage=args.coverage, seed=args.seed,
-                            time_cap=args.time_cap)
+                            time_cap=args.time_cap, lidar=args.lidar)
                 row.update(_run_case(spec, timeout=max(300.0, 4 * args.time_cap)))
                 if not row.get("skipped"):
                     measured.append((n, h * w, (row["forward_ms"] + row["backward_ms"]) / 1e3))
@@ -259,8 +324,9 @@ def main(argv: list[str], plugins) -> int:
             rr = ref[key]
             r["speedup_vs_reference"] = (rr["forward_ms"] + rr["backward_ms"]) / (r["forward_ms"] + r["backward_ms"])
 
-    table = Table(title=f"rasterizers on {device}, {threads} threads (medians of {args.repeats})")
-    for col in ("rasterizer", "Gaussians", "HxW", "forward ms", "backward ms", "fwd+bwd ms", "peak extra MB",
+    what = "rasterize_lidar" if args.lidar else "rasterizers"
+    table = Table(title=f"{what} on {device}, {threads} threads (medians of {args.repeats})")
+    for col in ("rasterizer", "Gaussians", "beams x azimuths" if args.lidar else "HxW", "forward ms", "backward ms", "fwd+bwd ms", "peak extra MB",
                 f"vs {reference}", "note"):
         table.add_column(col, justify="left" if col in ("rasterizer", "note", "HxW") else "right")
     for r in results:
@@ -274,11 +340,13 @@ def main(argv: list[str], plugins) -> int:
                       f"{r['peak_extra_mb']:.0f}", f"{sp:.1f}x" if sp else "-", r.get("note", ""))
     console.print(table)
     payload = dict(machine=machine_info(threads), device=str(device), threads=threads, repeats=args.repeats,
+                   lidar=args.lidar,
                    warmup=args.warmup, reference=reference,
                    coverage=args.coverage, seed=args.seed, torch=torch.__version__,
                    time=time.strftime("%Y-%m-%dT%H:%M:%S"), results=results)
-    write_json_atomic(args.output, payload)
-    console.print(f"wrote {args.output}")
+    output = args.output or Path("outputs/bench/raster_lidar.json" if args.lidar else "outputs/bench/raster.json")
+    write_json_atomic(output, payload)
+    console.print(f"wrote {output}")
     return 0
 
 

@@ -1,5 +1,7 @@
-"""The cpu rasterizer's C++ extension (csrc/raster.cpp, csrc/ssim.cpp), built at first use
-and cached by :class:`omnire.native.NativeExtension` (about a minute on 2 cores)."""
+"""The cpu rasterizer's C++ extensions, built at first use and cached by
+:class:`omnire.native.NativeExtension`: the camera kernels (csrc/raster.cpp, csrc/ssim.cpp,
+about a minute on 2 cores) and, apart so that each builds only when used, the LiDAR
+compositing (csrc/lidar.cpp, about 20 seconds)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -18,6 +20,10 @@ EXTENSION = NativeExtension("omnire_raster_cpu", SOURCES, CFLAGS, LDFLAGS, cpu_f
                             purpose="omnire cpu rasterizer")
 
 
+LIDAR_EXTENSION = NativeExtension("omnire_lidar_cpu", [Path(__file__).parent / "csrc" / "lidar.cpp"], CFLAGS,
+                                  LDFLAGS, cpu_flags=("avx2", "fma"), purpose="omnire cpu LiDAR rasterizer")
+
+
 def build_directory() -> Path:
     return EXTENSION.build_directory()
 
@@ -30,3 +36,8 @@ def load_extension() -> tuple[Optional[ModuleType], str]:
 def extension() -> ModuleType:
     """The loaded extension; a RuntimeError saying why when it is unavailable."""
     return EXTENSION.module()
+
+
+def lidar_extension() -> ModuleType:
+    """The loaded LiDAR extension; a RuntimeError saying why when it is unavailable."""
+    return LIDAR_EXTENSION.module()

@@ -12,11 +12,11 @@ def omnire_register_rasterizers(registry) -> None:
     registry.register(
         RasterizerSpec(
             name="cpu",
-            description="native C++/OpenMP AVX2 tile rasterizer with hand-written backward (CPU); "
+            description="native C++/OpenMP AVX2 tile rasterizer with hand-written backward, camera and LiDAR (CPU); "
             "kwargs: num_threads",
             factory=CpuRasterizer,
             available=available,
             priority=50,
-            capabilities=frozenset({"inference", "fused_training", "ssim"}),
+            capabilities=frozenset({"inference", "fused_training", "ssim", "lidar"}),
         )
     )

@@ -16,6 +16,9 @@ from omnire.api import (
     GAUSSIAN_KEYS,
     Camera,
     Gaussians,
+    LidarRays,
+    LidarRenderOutput,
+    LidarSettings,
     Placement,
     RasterInputError,
     RasterSettings,
@@ -28,6 +31,7 @@ from omnire.api import (
 )
 
 from ._build import extension as _ext
+from .lidar import rasterize_lidar as native_rasterize_lidar
 from .ssim import ssim_map as native_ssim_map
 
 
@@ -378,6 +382,12 @@ class CpuRasterizer:
         depth = dn / alpha.clamp_min(1e-10)
         return RenderOutput(rgb=rgb, depth=depth[..., None], alpha=alpha[..., None], radii=radii, means2d=means2d,
                             absgrad2d=absgrad), int(kept[0])
+
+    def rasterize_lidar(self, splats: Splats, rays: LidarRays, settings: LidarSettings = LidarSettings()
+                        ) -> LidarRenderOutput:
+        """The ``lidar`` capability (contract in :mod:`omnire.rasterization`): projection in
+        torch, compositing and its backward natively (:mod:`omnire_rasterizer_cpu.lidar`)."""
+        return native_rasterize_lidar(splats, rays, settings, self.num_threads or torch.get_num_threads())
 
     def ssim_map(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """(H, W, C) x2 -> (H, W, 1) SSIM, natively (:mod:`omnire_rasterizer_cpu.ssim`); the

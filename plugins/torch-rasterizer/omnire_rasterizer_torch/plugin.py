@@ -9,4 +9,5 @@ def _available(device) -> tuple[bool, str]:
 
 
 SPECS = (RasterizerSpec(name="torch", description="reference tile-based rasterizer in pure PyTorch (autograd); slow, "
-                        "any device", factory=TorchRasterizer, available=_available, priority=0),)
+                        "any device", factory=TorchRasterizer, available=_available, priority=0,
+                        capabilities=frozenset({"lidar"})),)

@@ -18,11 +18,15 @@ from omnire.api import (
     TILE_SIZE,
     TRANSMITTANCE_MIN,
     Camera,
+    LidarRays,
+    LidarRenderOutput,
+    LidarSettings,
     RasterSettings,
     RenderOutput,
     Splats,
     check_raster_inputs,
 )
+from omnire_rasterizer_torch.lidar import rasterize_lidar
 from omnire_rasterizer_torch.projection import project_gaussians
 
 
@@ -94,6 +98,12 @@ class TorchRasterizer:
         depth = depth_sum / torch.clamp(alpha, min=1e-10)
         assert rgb.shape == (height, width, D) and num_pix == height * width
         return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, radii=proj.radii, means2d=proj.means2d, absgrad2d=absgrad)
+
+    def rasterize_lidar(self, splats: Splats, rays: LidarRays, settings: LidarSettings = LidarSettings()
+                        ) -> LidarRenderOutput:
+        """The ``lidar`` capability (contract in :mod:`omnire.rasterization`), by autograd:
+        :mod:`omnire_rasterizer_torch.lidar`."""
+        return rasterize_lidar(splats, rays, settings, self.chunk_elements)
 
     def _composite_tiles(self, tiles, counts, starts, gids, proj, opacities, colors, local, tiles_x, absgrad):
         """Composite the depth-sorted lists of ``tiles`` (T,). Returns colour (T,256,D),

@@ -1,0 +1,115 @@
+"""The native LiDAR kernels (csrc/lidar.cpp) against the torch reference: forward and every
+gradient in float64 (to rounding) and float32 (tolerances below), a float64 gradcheck of
+the native path, beam-grid rays and recorded directions, thread counts, empty inputs.
+
+float32 tolerances, against the float64 reference on the same scene: alpha and features
+2e-4 absolute, ranges 1e-3 relative (the angles are float32: 3e-5 degrees at 360), and the
+gradients 2e-3 of the largest gradient of each tensor."""
+import numpy as np
+import pytest
+import torch
+
+from omnire.api import BeamModel, LidarRays, LidarSettings, Splats
+from omnire_rasterizer_cpu._build import LIDAR_EXTENSION
+from omnire_rasterizer_torch import TorchRasterizer
+from omnire_rasterizer_torch.testing import random_lidar_scene
+
+OK, REASON = LIDAR_EXTENSION.load()
+if OK is None:
+    pytest.skip(f"cpu LiDAR extension unavailable: {REASON}", allow_module_level=True)
+
+from omnire_rasterizer_cpu.rasterizer import CpuRasterizer  # noqa: E402
+
+NAMES = ("means", "quats", "scales", "opacities", "colors")
+OUTPUTS = ("range", "median_range", "alpha", "features")
+
+
+def run(rast, scene, rays=None, dtype=torch.float64, weights=None):
+    """Render ``scene`` with ``rast`` in ``dtype``; backward a weighted sum of every output.
+    Returns the outputs (float64) and the gradients of the five splat tensors (float64)."""
+    leaves = [scene[k].detach().to(dtype).clone().requires_grad_(True) for k in NAMES]
+    if rays is None:
+        rays = LidarRays(scene["pose"], scene["azimuth"], scene["elevation"], 0.5, 60.0)
+    out = rast.rasterize_lidar(Splats(*leaves), rays, LidarSettings())
+    outs = [getattr(out, k) for k in OUTPUTS]
+    if weights is None:
+        g = torch.Generator().manual_seed(3)
+        weights = [torch.rand(o.shape, generator=g, dtype=torch.float64) for o in outs]
+    sum((o * w.to(o.dtype)).sum() for o, w in zip(outs, weights)).backward()
+    return [o.detach().double() for o in outs], [t.grad.double() for t in leaves]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_float64_forward_and_gradients_equal_the_reference(seed):
+    scene = random_lidar_scene(1500, 2000, seed)
+    outs, grads = run(CpuRasterizer(), scene)
+    ref_outs, ref_grads = run(TorchRasterizer(), scene)
+    assert (ref_outs[2] > 0.5).sum() > 100
+    for name, a, b in zip(OUTPUTS, outs, ref_outs):
+        torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-9, msg=f"output {name}")
+    for name, a, b in zip(NAMES, grads, ref_grads):
+        assert b.abs().max() > 0, name
+        torch.testing.assert_close(a, b, atol=1e-9 * float(b.abs().max()), rtol=1e-7, msg=f"gradient of {name}")
+
+
+def test_float32_against_the_float64_reference():
+    scene = random_lidar_scene(1500, 2000, seed=4)
+    outs, grads = run(CpuRasterizer(), scene, dtype=torch.float32)
+    ref_outs, ref_grads = run(TorchRasterizer(), scene)
+    for name, a, b in zip(OUTPUTS, outs, ref_outs):
+        if name in ("range", "median_range"):
+            hit = ref_outs[2] > 0.05  # where something is composited (a range of nothing is 0 or max_range)
+            np.testing.assert_allclose(a[hit], b[hit], rtol=1e-3, err_msg=name)
+        else:
+            np.testing.assert_allclose(a, b, atol=2e-4, err_msg=name)
+    for name, a, b in zip(NAMES, grads, ref_grads):
+        scale = float(b.abs().max())
+        worst = float((a - b).abs().max())
+        assert worst <= 2e-3 * scale, f"gradient of {name}: off by {worst:.3g} of {scale:.3g}"
+
+
+def test_gradcheck_native_float64():
+    scene = random_lidar_scene(12, 60, seed=5)
+    scene["scales"] = scene["scales"] * 8.0  # every ray crosses several Gaussians
+    scene["opacities"] = scene["opacities"].clamp(max=0.8)
+    g = torch.Generator().manual_seed(0)
+    weights = [torch.rand(60, dtype=torch.float64, generator=g) for _ in range(3)] + [
+        torch.rand(60, 2, dtype=torch.float64, generator=g)]
+    rays = LidarRays(scene["pose"], scene["azimuth"], scene["elevation"], 0.5, 60.0)
+    rast = CpuRasterizer()
+
+    def f(*leaves):
+        out = rast.rasterize_lidar(Splats(*leaves), rays)
+        return sum((getattr(out, k) * w).sum() for k, w in zip(OUTPUTS, weights))
+
+    leaves = [scene[k].clone().requires_grad_(True) for k in NAMES]
+    assert torch.autograd.gradcheck(f, leaves, eps=1e-6, atol=1e-5, rtol=1e-4)  # every input element
+
+
+def test_beam_grid_and_recorded_directions_and_threads():
+    """A BeamModel's grid (rays on a grid) and scattered directions (recorded returns) give
+    the reference's numbers; 1 and 2 threads give the same."""
+    scene = random_lidar_scene(800, 10, seed=6)
+    model = BeamModel(np.linspace(-20.0, 20.0, 16), azimuth_resolution_deg=1.5, max_range=60.0, min_range=0.5)
+    grid = LidarRays.from_beam_model(scene["pose"], model)
+    assert len(grid) == 16 * 240
+    outs, grads = run(CpuRasterizer(num_threads=2), scene, grid)
+    ref_outs, ref_grads = run(TorchRasterizer(), scene, grid)
+    for a, b in zip(outs + grads, ref_outs + ref_grads):
+        torch.testing.assert_close(a, b, atol=1e-9 * max(1.0, float(b.abs().max())), rtol=1e-7)
+    one = run(CpuRasterizer(num_threads=1), scene, grid)
+    for a, b in zip(outs + grads, one[0] + one[1]):
+        torch.testing.assert_close(a, b, atol=1e-12 * max(1.0, float(b.abs().max())), rtol=1e-10)
+
+
+def test_empty_rays_and_no_gaussians():
+    scene = random_lidar_scene(20, 10, seed=1)
+    rast = CpuRasterizer()
+    no_rays = LidarRays(scene["pose"], scene["azimuth"][:0], scene["elevation"][:0], 0.5, 60.0)
+    outs, grads = run(rast, scene, no_rays)
+    assert outs[0].shape == (0,) and outs[3].shape == (0, 2)
+    assert all(float(g.abs().sum()) == 0 for g in grads)
+    empty = {**scene, **{k: scene[k][:0] for k in NAMES}}
+    outs, _ = run(rast, empty)
+    assert torch.equal(outs[2], torch.zeros(10, dtype=torch.float64))
+    assert torch.equal(outs[1], torch.full((10,), 60.0, dtype=torch.float64))
