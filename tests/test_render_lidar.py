@@ -34,7 +34,7 @@ def lidar_run(tmp_path_factory):
                                                                                                                   None)
     argv = ["3dgs", "processed", "--data", str(scene), "--trainer.max-steps", "2", "--trainer.output-dir",
             str(root / "runs"), "--trainer.run-name", "lidar", "--trainer.no-progress", "--trainer.eval-train-views",
-            "1", "--trainer.threads", "1", "--method.rasterizer", "torch", "--method.lidar.enabled",
+            "1", "--trainer.threads", "1", "--method.rasterizer", "cpu", "--method.lidar.enabled",
             "--method.lidar.every", "1", "--method.lidar.rays-per-step", "2000",
             "--method.nodes.background.max-lidar-points", "3000", "--method.nodes.background.num-far-points", "300"]
     Trainer(parse_train_args(argv, plugins), plugins, argv=argv).train()

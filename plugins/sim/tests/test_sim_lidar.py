@@ -5,6 +5,7 @@ LiDAR features (untrained Gaussians: every test compares sweeps of the same Gaus
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -116,3 +117,55 @@ def test_an_inserted_actor_casts_points_on_its_box(lidar_street, plugins, tmp_pa
     hit = (guest.ray_drop.numpy() < 0.5) & (guest.alpha.numpy() - plain.alpha.numpy() > 0.3) & (r1 < r0 - 0.05)
     on = in_box(sweep.directions()[hit] * r1[hit, None] + SENSOR[:3, 3], centre, size)
     assert hit.sum() > 20 and on.mean() > 0.95, f"{on.mean():.3f} of {hit.sum()} new returns on the box"
+
+
+@pytest.fixture(scope="module")
+def demo_lidar_run(tmp_path_factory, plugins):
+    """streetgs with LiDAR rendering on 4 frames of the demo scene (PandaSet: sensor poses and
+    per-point times, so sweeps render in time sectors), 2 steps."""
+    from conftest import DEMO_SCENE
+
+    if not DEMO_SCENE.is_dir():
+        pytest.skip("demo scene (data/demo/pandaset_002) not in this checkout")
+    from omnire.runconfig import parse_train_args
+    from omnire.trainer import Trainer
+
+    root = tmp_path_factory.mktemp("lidar-runs")
+    argv = ["streetgs", "pandaset", "--data", str(DEMO_SCENE), "--end-frame", "4", "--holdout-every", "2",
+            "--scale", "0.25", "--method.nodes.background.max-lidar-points", "3000",
+            "--method.nodes.background.num-far-points", "300", "--trainer.max-steps", "2", "--trainer.no-progress",
+            "--trainer.eval-train-views", "1", "--trainer.threads", "1", "--trainer.output-dir", str(root),
+            "--trainer.run-name", "demo", "--method.lidar.enabled", "--method.lidar.every", "1",
+            "--method.lidar.rays-per-step", "4000"]
+    Trainer(parse_train_args(argv, plugins), plugins, argv=argv).train()
+    return root / "demo"
+
+
+def test_sim_lidar_writes_a_point_cloud_per_frame_without_the_removed_car(demo_lidar_run, plugins, tmp_path):
+    from omnire_sim.cli import SimArgs, run_sim, sim_sweep
+
+    recon = Reconstruction.from_run(demo_lidar_run, plugins)
+    node = recon.actor_nodes()["rigid"]
+    state = node.state_at(recon.time(1))
+
+    def in_car(k: int, cloud) -> int:
+        """Points of ``cloud`` inside car k's box at frame 1, 0.3 m above its bottom."""
+        p = np.stack([cloud["x"], cloud["y"], cloud["z"]], 1).astype(np.float64)
+        local = (p - state.t[k].detach().double().numpy()) @ state.R[k].detach().double().numpy()
+        half = node.half_sizes[int(state.ids[k])].detach().double().numpy()
+        return int((np.all(np.abs(local) <= half, axis=1) & (local[:, 2] > -half[2] + 0.3)).sum())
+
+    with torch.no_grad():  # the recorded scene's sweep: the car the LiDAR sees most of
+        recorded = sim_sweep(Simulation(recon, parse_scenario("", "empty.toml")), recon.time(1))
+    counts = [in_car(k, recorded) for k in range(len(state.ids))]
+    k = int(np.argmax(counts))
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(f'[camera]\npath = "recorded"\nframes = [1]\n[[actor]]\n'
+                        f'track = "{node.track_ids[int(state.ids[k])]}"\nremove = true\n')
+    out = tmp_path / "sim"
+    run_sim(SimArgs(demo_lidar_run, scenario, out, progress=False, lidar=True, video=False), plugins)
+    manifest = json.loads((out / "manifest.json").read_text())
+    ply, npz = manifest["frames"][0]["lidar"]
+    cloud = np.load(out / npz)
+    assert len(cloud["x"]) > 1000 and (out / ply).is_file() and np.isfinite(cloud["time"]).all()
+    assert counts[k] > 10 and in_car(k, cloud) < 0.05 * counts[k], (counts[k], in_car(k, cloud))
