@@ -86,7 +86,8 @@ def recorded_sweep(scene: SceneData, frame: int) -> Optional[SweepRays]:
     """The rays of frame ``frame``'s sweep: one per return (its direction from the sensor at
     its own time, its range and intensity), and, when the sweep's beams and beam model are
     known, one per missing return of its range image (omnire.beams.range_image), fired at
-    the time of the return nearest in azimuth. None when the frame has no LiDAR."""
+    the time interpolated between the returns on either side of its azimuth. None when the
+    frame has no LiDAR."""
     lidar = scene.lidar
     if lidar is None or lidar.points[frame] is None:
         return None
@@ -102,7 +103,10 @@ def recorded_sweep(scene: SceneData, frame: int) -> Optional[SweepRays]:
                  else np.full(len(points), np.nan, np.float32))
     beam = lidar.beams[frame].astype(np.int16) if lidar.beams is not None else np.full(len(points), -1, np.int16)
     model = lidar.beam_model
-    limits = (float(model.min_range), float(model.max_range)) if model is not None else (0.0, float(rng.max(initial=1.0)) * 1.5)
+    if model is not None:
+        limits = (float(model.min_range), float(model.max_range))
+    else:  # no sensor model: anything out to half again the farthest return
+        limits = (0.0, 1.5 * float(rng.max(initial=1.0)))
     sweep = SweepRays(az, el, times, rng, intensity, np.ones(len(points), bool), beam, False, *limits)
     if lidar.beams is None or model is None or not len(points):
         return sweep

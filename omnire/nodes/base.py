@@ -20,6 +20,10 @@ Contract of a :class:`Node`:
 - ``param_groups()`` lists learning-rate groups, per-Gaussian ones by key.
 - ``row_order()`` (optional): a permutation restoring the row order the node relies on
   after densification (actor nodes keep each instance's rows contiguous).
+- ``lidar_features(output)``: the LiDAR features (omnire/lidarmodel.py) of an output's
+  Gaussians, read from the ``lidar`` parameter by the output's ``rows``; a node built through
+  :meth:`Node.init_gaussians` holds them when the method renders LiDAR, with nothing more to
+  write.
 
 :class:`GaussianNode` carries what Gaussian-holding nodes share (config, scene radius,
 per-Gaussian learning rates); :class:`EnvironmentNode` is the base of nodes that paint the
