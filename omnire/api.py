@@ -54,6 +54,7 @@ from omnire.geometry import (
     axis_angle_to_rotmat,
     axis_rotation,
     invert_se3,
+    lowpass_conics,
     quat_multiply,
     quat_to_rotmat,
     quat_to_se3,
@@ -180,6 +181,7 @@ from omnire.registry import (
     SceneWriterSpec,
     TrainObserverSpec,
 )
+from omnire.rollingshutter import SweepSector, spin_times, sweep_sectors
 from omnire.rowsparse import row_sparse
 from omnire.runconfig import TrainConfig, TrainerConfig, parse_device
 from omnire.rundir import CheckpointError, RunDirectory, RunDirectoryError, flatten_eval

@@ -194,6 +194,21 @@ def rot_z(angle: torch.Tensor) -> torch.Tensor:
 
 
 @numpy_compatible
+def lowpass_conics(cov2d: torch.Tensor, eps: float, valid: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """EWA's 2D step: projected covariances (N, 2, 2) plus ``eps`` on the diagonal (the
+    low-pass filter), inverted. Returns conics (N, 3) (a', b', c') of the inverse
+    [[a', b'], [b', c']] (finite, arbitrary where not ``ok``), the low-passed diagonal a, c
+    (N,) each, the determinant (N,) and ``ok`` (N,) = ``valid`` (N,) & determinant > 0."""
+    a = cov2d[:, 0, 0] + eps
+    b = cov2d[:, 0, 1]
+    c = cov2d[:, 1, 1] + eps
+    det = a * c - b * b
+    ok = valid & (det > 0)
+    det_safe = torch.where(ok, det, torch.ones_like(det))
+    return torch.stack([c / det_safe, -b / det_safe, a / det_safe], -1), torch.stack([a, c], -1), det, ok
+
+
 def quat_to_se3(q: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """(..., 4) wxyz rotations (normalised here, as in :func:`quat_to_rotmat`) and (..., 3)
     translations -> (..., 4, 4) rigid transforms x -> R(q) x + t."""

@@ -1,6 +1,7 @@
 """Spherical projection of 3D Gaussians for LiDAR rendering: the geometry of the ``lidar``
-contract of :mod:`omnire.rasterization`, in PyTorch (differentiable), shared by every backend
-so that they composite the same per-Gaussian quantities.
+contract of :mod:`omnire.rasterization`, in PyTorch (differentiable), and the tiles of the
+sphere that bin rays and Gaussians. Backends composite these per-Gaussian quantities (the
+cpu one computes the same numbers natively, plugins/cpu-rasterizer/omnire_rasterizer_cpu/csrc/lidar.cpp).
 
 Sensor frame x forward, y left, z up; azimuth counter-clockwise from +x in degrees,
 elevation above the x-y plane in degrees (:func:`omnire.beams.spherical`). Shapes: N
@@ -31,7 +32,7 @@ import math
 
 import torch
 
-from omnire.geometry import quat_to_rotmat
+from omnire.geometry import lowpass_conics, quat_to_rotmat
 from omnire.rasterization import ALPHA_THRESHOLD, LidarRays, Splats
 
 POLE_MARGIN_DEG = 1.0
@@ -192,14 +193,8 @@ def project_lidar(splats: Splats, rays: LidarRays, eps_deg2: float) -> Spherical
                            -xs * zs / (rho2 * rxy), -ys * zs / (rho2 * rxy), rxy / rho2], -1).reshape(-1, 2, 3)
     rot = Rs.T @ quat_to_rotmat(quats)  # (N, 3, 3) Gaussian axes in the sensor frame
     M = rot * scales[:, None, :]
-    cov = J @ (M @ M.transpose(1, 2)) @ J.transpose(1, 2)  # (N, 2, 2) degrees^2
-    a = cov[:, 0, 0] + eps_deg2
-    b = cov[:, 0, 1]
-    c = cov[:, 1, 1] + eps_deg2
-    det = a * c - b * b
-    ok = visible & (det > 0)
-    det_safe = torch.where(ok, det, torch.ones_like(det))
-    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], -1)
+    JM = J @ M
+    conics, diag, _, ok = lowpass_conics(JM @ JM.transpose(1, 2), eps_deg2, visible)  # degrees^2 before inverting
 
     s = scales.clamp_min(MIN_SCALE)
     weight = (s.min(-1, keepdim=True).values / s) ** 2  # (N, 3) in (0, 1]: S^-1 scaled by the smallest variance
@@ -209,7 +204,7 @@ def project_lidar(splats: Splats, rays: LidarRays, eps_deg2: float) -> Spherical
 
     with torch.no_grad():
         level = 2.0 * torch.log(torch.clamp(opacities / ALPHA_THRESHOLD, min=1.0))  # alpha >= 1/255 inside
-        extent = EXTENT_MARGIN[0] * torch.sqrt(level[:, None] * torch.stack([a, c], -1).clamp_min(0.0))
+        extent = EXTENT_MARGIN[0] * torch.sqrt(level[:, None] * diag.clamp_min(0.0))
         extent = extent + EXTENT_MARGIN[1]
         extent = torch.nan_to_num(extent, nan=360.0, posinf=360.0).clamp(max=360.0)  # an overflow covers all
         extent = torch.where(ok[:, None], extent, torch.zeros_like(extent))

@@ -92,8 +92,9 @@ the thresholds of the camera path (alpha >= 1/255, at most 0.99, stop before the
 transmittance drops below 1e-4). Gaussians whose centre is not strictly between
 ``min_range`` and ``max_range``, or lies within 1 degree of the sensor's vertical axis (where
 the spherical map is singular; no spinning LiDAR looks there), are not drawn; a pair whose
-r_i is undefined (omnire/lidarprojection.py) or outside [min_range, max_range] is skipped. Gradients flow to the splats; the rays
-and the sensor pose receive none. Bad input raises :class:`RasterInputError`.
+r_i is undefined (omnire/lidarprojection.py) or outside [min_range, max_range] is skipped.
+Gradients flow to the splats; the rays and the sensor pose receive none. Bad input raises
+:class:`RasterInputError`.
 """
 from __future__ import annotations
 

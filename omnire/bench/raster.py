@@ -46,6 +46,7 @@ from typing import Optional
 import tyro
 
 from omnire.bench.machine import machine_info
+from omnire.errors import ConfigError
 from omnire.bench.memory import process_status_kib
 
 
@@ -85,9 +86,13 @@ class BenchArgs:
     lowest priority, the reference implementation)."""
 
 
-def parse_resolution(text: str) -> tuple[int, int]:
-    h, w = text.lower().split("x")
-    return int(h), int(w)
+def parse_resolution(text: str, option: str = "--resolutions") -> tuple[int, int]:
+    """``"HxW"`` -> (H, W), both positive; a ConfigError naming ``option`` otherwise."""
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() and int(p) > 0 for p in parts):
+        raise ConfigError(f"{option} {text!r}: expected two positive integers as HEIGHTxWIDTH (beams x azimuths "
+                          "with --lidar-rays), e.g. 160x240")
+    return int(parts[0]), int(parts[1])
 
 
 def make_scene(n: int, height: int, width: int, coverage: float = 8.0, seed: int = 0, device: str = "cpu"):
@@ -130,7 +135,8 @@ def make_lidar_scene(n: int, beams: int, azimuths: int, coverage: float = 8.0, s
     rng = torch.empty(n).uniform_(2.0, 60.0, generator=g)
     az = torch.deg2rad(torch.empty(n).uniform_(0.0, 360.0, generator=g))
     el = torch.deg2rad(torch.empty(n).uniform_(lo - 1.0, hi + 1.0, generator=g))
-    means = rng[:, None] * torch.stack([torch.cos(el) * torch.cos(az), torch.cos(el) * torch.sin(az), torch.sin(el)], -1)
+    means = rng[:, None] * torch.stack([torch.cos(el) * torch.cos(az), torch.cos(el) * torch.sin(az), torch.sin(el)],
+                                       -1)
     s_deg = math.sqrt(coverage * 360.0 * (hi - lo) / (n * math.pi * 4.0))
     scales = (rng * math.radians(s_deg))[:, None] * torch.exp(0.4 * torch.randn(n, 3, generator=g))
     grid_az = (torch.arange(azimuths, dtype=torch.float64) * (360.0 / azimuths)).repeat(beams)
@@ -286,7 +292,8 @@ def main(argv: list[str], plugins) -> int:
         console.print("[red]no rasterizer to benchmark[/]")
         return 1
     grids = args.lidar_rays if args.lidar else args.resolutions
-    cases = sorted(((n, *parse_resolution(r)) for n in args.gaussians for r in grids),
+    option = "--lidar-rays" if args.lidar else "--resolutions"
+    cases = sorted(((n, *parse_resolution(r, option)) for n in args.gaussians for r in grids),
                    key=lambda c: (c[0] * c[1] * c[2], c[0]))
     results = []
     for name in chosen:
@@ -326,7 +333,8 @@ def main(argv: list[str], plugins) -> int:
 
     what = "rasterize_lidar" if args.lidar else "rasterizers"
     table = Table(title=f"{what} on {device}, {threads} threads (medians of {args.repeats})")
-    for col in ("rasterizer", "Gaussians", "beams x azimuths" if args.lidar else "HxW", "forward ms", "backward ms", "fwd+bwd ms", "peak extra MB",
+    for col in ("rasterizer", "Gaussians", "beams x azimuths" if args.lidar else "HxW", "forward ms", "backward ms",
+                "fwd+bwd ms", "peak extra MB",
                 f"vs {reference}", "note"):
         table.add_column(col, justify="left" if col in ("rasterizer", "note", "HxW") else "right")
     for r in results:

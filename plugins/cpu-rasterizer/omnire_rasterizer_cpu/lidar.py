@@ -1,8 +1,8 @@
-"""The ``lidar`` capability of the cpu rasterizer: the projection to the sensor's sphere in
-torch (:func:`omnire.api.project_lidar`, differentiable, shared with the reference), the
-binning and compositing of the rays and their backward natively (csrc/lidar.cpp, OpenMP
-over tiles of the sphere). float64 inputs run the double-precision kernel (gradient
-checks); anything else runs in float32.
+"""The ``lidar`` capability of the cpu rasterizer, natively (csrc/lidar.cpp): the projection
+to the sensor's sphere (the numbers of :func:`omnire.api.project_lidar`, in double) and its
+backward, then the binning of rays and Gaussians into tiles of the sphere (the tiling of
+:class:`omnire.api.SphereTiles`) and the compositing with its backward (OpenMP). float64
+inputs run the double-precision kernels (gradient checks); anything else runs in float32.
 """
 from __future__ import annotations
 
@@ -16,27 +16,53 @@ from omnire.api import (
     SphereTiles,
     Splats,
     check_lidar_inputs,
-    project_lidar,
-    ray_directions,
 )
 
 from ._build import lidar_extension
+
+
+class _ProjectFn(torch.autograd.Function):
+    """(means (N,3), quats (N,4), scales (N,3)) -> azimuth, elevation (N,), conics (N,3),
+    quad (N,6), lin (N,3), and without gradient distance (N,), extent (N,2), visible (N,)
+    (:class:`omnire.api.SphericalSplats`). ``meta``: opacities (N,) (they only decide what
+    is drawn here), the pose (4,4) float64, eps_deg2, min_range, max_range, threads."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, meta):
+        opac, pose, eps, rmin, rmax, nthreads = meta
+        out = lidar_extension().lidar_project(means, quats, scales, opac, pose, eps, rmin, rmax, nthreads)
+        ctx.save_for_backward(means, quats, scales, opac, pose)
+        ctx.meta = (eps, rmin, rmax, nthreads)
+        ctx.mark_non_differentiable(*out[5:])
+        return tuple(out)
+
+    @staticmethod
+    def backward(ctx, g_az, g_el, g_con, g_quad, g_lin, _g_dist, _g_ext, _g_vis):
+        means, quats, scales, opac, pose = ctx.saved_tensors
+        eps, rmin, rmax, nthreads = ctx.meta
+        grads = [torch.zeros(shape, dtype=means.dtype) if g is None else g.contiguous().to(means.dtype)
+                 for g, shape in ((g_az, (len(means),)), (g_el, (len(means),)), (g_con, (len(means), 3)),
+                                  (g_quad, (len(means), 6)), (g_lin, (len(means), 3)))]
+        g_means, g_quats, g_scales = lidar_extension().lidar_project_backward(
+            means, quats, scales, opac, pose, eps, rmin, rmax, *grads, nthreads)
+        return g_means, g_quats, g_scales, None
 
 
 class _LidarFn(torch.autograd.Function):
     """(azimuth (N,), elevation (N,), opacities (N,), conics (N,3), quad (N,6), lin (N,3),
     features (N,F)) -> (features (R,F), range sum (R,), alpha (R,), median range (R,)).
 
-    ``meta``: the drawn Gaussians by centre distance (n,), their tile boxes (N,4), the rays'
-    azimuths in [0, 360) (R,), elevations (R,), directions (R,3) and tiles (R,), the tiling's
-    columns and tile count, min_range, max_range, threads. The rays take no gradient."""
+    ``meta``: the projection's distance (N,), extent (N,2) and visible (N,), the rays'
+    azimuths and elevations (R,), the tiling (:class:`omnire.api.SphereTiles`), min_range,
+    max_range, threads. The rays take no gradient."""
 
     @staticmethod
     def forward(ctx, az, el, opac, conics, quad, lin, feat, meta):
-        order, box, ray_az, ray_el, dirs, ray_tile, columns, tiles, rmin, rmax, nthreads = meta
-        o_feat, o_rsum, o_alpha, o_median, rec, goff, gids, roff, rids = lidar_extension().lidar_forward(
-            az, el, opac, conics, quad, lin, feat, order, box, ray_az, ray_el, dirs, ray_tile, columns, tiles, rmin,
-            rmax, nthreads)
+        distance, extent, visible, ray_az, ray_el, tiles, rmin, rmax, nthreads = meta
+        (o_feat, o_rsum, o_alpha, o_median, rec, goff, gids, roff, rids, ray_az,
+         dirs) = lidar_extension().lidar_forward(
+            az, el, opac, conics, quad, lin, feat, distance, extent, visible, ray_az, ray_el, tiles.columns,
+            tiles.rows, tiles.column_deg, tiles.row_deg, tiles.first_elevation, rmin, rmax, nthreads)
         ctx.save_for_backward(rec, feat, goff, gids, roff, rids, ray_az, ray_el, dirs, o_feat, o_rsum, o_alpha)
         ctx.meta = (rmin, rmax, nthreads)
         return o_feat, o_rsum, o_alpha, o_median
@@ -54,7 +80,8 @@ class _LidarFn(torch.autograd.Function):
             grad_or_zeros(g_feat, o_feat), grad_or_zeros(g_rsum, o_rsum), grad_or_zeros(g_alpha, o_alpha),
             grad_or_zeros(g_median, o_alpha), rmin, rmax, nthreads).to(rec.dtype)
         # slots: azimuth, elevation, conic a b c, opacity, quad (6), lin (3), features (F)
-        return grads[:, 0], grads[:, 1], grads[:, 5], grads[:, 2:5], grads[:, 6:12], grads[:, 12:15], grads[:, 15:], None
+        return (grads[:, 0], grads[:, 1], grads[:, 5], grads[:, 2:5], grads[:, 6:12], grads[:, 12:15], grads[:, 15:],
+                None)
 
 
 def rasterize_lidar(splats: Splats, rays: LidarRays, settings: LidarSettings, num_threads: int) -> LidarRenderOutput:
@@ -65,21 +92,14 @@ def rasterize_lidar(splats: Splats, rays: LidarRays, settings: LidarSettings, nu
     if any(t.device.type != "cpu" for t in tensors):
         raise RasterInputError("the cpu rasterizer needs CPU tensors")
     dtype = torch.float64 if splats.means.dtype == torch.float64 else torch.float32
-    splats = Splats(*(t.to(dtype) for t in (splats.means, splats.quats, splats.scales, splats.opacities,
-                                             splats.colors)))
-    proj = project_lidar(splats, rays, settings.eps_deg2)
-    tiles = SphereTiles.for_rays(rays)
-    with torch.no_grad():
-        drawn = torch.nonzero(proj.visible).flatten()
-        order = drawn[torch.argsort(proj.distance[drawn], stable=True)].contiguous()
-        box = tiles.boxes(proj).contiguous()
-        ray_az = torch.remainder(rays.azimuth_deg.detach().to(torch.float64), 360.0).to(dtype)
-        ray_el = rays.elevation_deg.detach().to(dtype)
-        dirs = ray_directions(ray_az, ray_el).contiguous()
-        ray_tile = tiles.of_rays(rays).contiguous()
-    meta = (order, box, ray_az.contiguous(), ray_el.contiguous(), dirs, ray_tile, tiles.columns, tiles.count,
-            float(rays.min_range), float(rays.max_range), int(num_threads))
-    feat, rsum, alpha, median = _LidarFn.apply(
-        proj.azimuth.contiguous(), proj.elevation.contiguous(), proj.opacities.contiguous(), proj.conics.contiguous(),
-        proj.quad.contiguous(), proj.lin.contiguous(), splats.colors.contiguous(), meta)
+    means, quats, scales, opacities, colors = (t.to(dtype).contiguous() for t in (
+        splats.means, splats.quats, splats.scales, splats.opacities, splats.colors))
+    pose = rays.sensor_to_world.detach().to(torch.float64).contiguous()
+    az, el, conics, quad, lin, distance, extent, visible = _ProjectFn.apply(
+        means, quats, scales, (opacities.detach(), pose, float(settings.eps_deg2), float(rays.min_range),
+                               float(rays.max_range), int(num_threads)))
+    meta = (distance, extent, visible, rays.azimuth_deg.detach().to(dtype).contiguous(),
+            rays.elevation_deg.detach().to(dtype).contiguous(), SphereTiles.for_rays(rays), float(rays.min_range),
+            float(rays.max_range), int(num_threads))
+    feat, rsum, alpha, median = _LidarFn.apply(az, el, opacities, conics, quad, lin, colors, meta)
     return LidarRenderOutput(range=rsum / alpha.clamp_min(1e-10), median_range=median, features=feat, alpha=alpha)

@@ -8,7 +8,7 @@ import dataclasses
 
 import torch
 
-from omnire.api import quat_to_rotmat
+from omnire.api import lowpass_conics, quat_to_rotmat
 
 
 @dataclasses.dataclass
@@ -63,14 +63,8 @@ def project_gaussians(
     J = torch.stack(
         [fx / z_safe, zero, -fx * tx / z_safe**2, zero, fy / z_safe, -fy * ty / z_safe**2], dim=-1
     ).reshape(-1, 2, 3)
-    cov2d = J @ cov_cam @ J.transpose(1, 2)  # (N, 2, 2)
-    a = cov2d[:, 0, 0] + eps2d
-    b = cov2d[:, 0, 1]
-    c = cov2d[:, 1, 1] + eps2d
-    det = a * c - b * b
-    ok = in_depth & (det > 0)
-    det_safe = torch.where(ok, det, torch.ones_like(det))
-    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
+    conics, diag, det, ok = lowpass_conics(J @ cov_cam @ J.transpose(1, 2), eps2d, in_depth)
+    a, c = diag.unbind(-1)
 
     means2d = torch.stack([fx * x / z_safe + cx, fy * y / z_safe + cy], dim=-1)
     with torch.no_grad():

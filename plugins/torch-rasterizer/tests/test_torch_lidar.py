@@ -93,7 +93,8 @@ def test_ground_plane_ranges_and_why_the_range_is_the_max_response():
     print(f"ground plane, {inside.sum()} rays: median |error| max response {np.median(err_median) * 100:.2f} cm "
           f"(expected range {np.median(err_expected) * 100:.2f} cm), centre distance "
           f"{np.median(c_err_median) * 100:.2f} cm (expected {np.median(c_err_expected) * 100:.2f} cm); "
-          f"95th percentiles {np.percentile(err_median, 95) * 100:.2f} / {np.percentile(c_err_median, 95) * 100:.2f} cm")
+          f"95th percentiles {np.percentile(err_median, 95) * 100:.2f} / "
+          f"{np.percentile(c_err_median, 95) * 100:.2f} cm")
     assert np.median(err_median) < 0.005 and np.median(err_expected) < 0.005
     assert np.percentile(err_median, 95) < 0.02
     assert np.median(c_err_median) > 5 * np.median(err_median)
