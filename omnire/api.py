@@ -84,6 +84,8 @@ from omnire.lidar_baselines import (
 )
 from omnire.lidar_metrics import BOX_CATEGORIES, Box, RenderedSweep, boxes_at, lidar_metrics, mean_metrics
 from omnire.lidar_rays import SweepRays, lidar_track, scene_sweep_rays, sweep_rays
+from omnire.lidarmodel import LIDAR_KEY, LidarConfig, LidarRender
+from omnire.lidarpoints import POINT_FIELDS, sweep_points, write_point_cloud
 from omnire.lidarprojection import (
     SphereTiles,
     SphericalSplats,
@@ -91,6 +93,16 @@ from omnire.lidarprojection import (
     project_lidar,
     ray_directions,
     wrap_degrees,
+)
+from omnire.lidarsweep import (
+    SensorPath,
+    SensorRays,
+    beam_model_sweep,
+    fixed_path,
+    recorded_sweep,
+    sectors_of,
+    sensor_path,
+    shifted_path,
 )
 from omnire.limits import (
     DEFAULT_FRAME_CAP,

@@ -28,7 +28,7 @@ from __future__ import annotations
 import copy
 import logging
 from pathlib import Path
-from typing import Collection, Iterable, Iterator, Mapping, Optional, Protocol
+from typing import TYPE_CHECKING, Collection, Iterable, Iterator, Mapping, Optional, Protocol
 
 import torch
 
@@ -38,10 +38,15 @@ from omnire.model import RenderResult, SceneModel, enabled_node_specs
 from omnire.nodes.actors import ActorNode, ActorState
 from omnire.nodes.base import EnvironmentNode, Node, NodeOutput
 from omnire.gaussians import Gaussians
+from omnire.lidarmodel import LidarRender
+from omnire.lidarsweep import SensorPath, SensorRays, sectors_of
 from omnire.rasterization import Rasterizer, describe_paths, select_backend
 from omnire.rundir import RunDirectory, RunInfo, find_checkpoint
 from omnire.runconfig import TrainConfig, parse_train_args
 from omnire.strategy import NodeSlice
+
+if TYPE_CHECKING:
+    from omnire.rasterization import LidarRays, LidarSettings
 
 log = logging.getLogger("omnire.runtime")
 
@@ -311,6 +316,12 @@ class Reconstruction:
     def num_gaussians(self) -> int:
         return self.model.num_gaussians()
 
+    @property
+    def renders_lidar(self) -> bool:
+        """The scene learned LiDAR features (``--method.lidar.enabled`` on a scene with LiDAR),
+        so :meth:`render_lidar` can render it."""
+        return self.model.lidar_features is not None
+
     def sh_degree(self, step: Optional[int] = None) -> int:
         """SH bands switched on at schedule step ``step`` (default: the state's
         :attr:`schedule_step`, the step count unless a time budget set it apart)."""
@@ -404,6 +415,36 @@ class Reconstruction:
         if only is not None:
             hidden = frozenset(hidden) | frozenset(self.environment_nodes())
         return self.render_outputs(parts, camera, time, step, sh_degree, hidden)
+
+    def render_lidar(self, rays: LidarRays, time: SceneTime, step: Optional[int] = None,
+                     hidden: Collection[str] = frozenset(), edits: Optional[ActorEdits] = None,
+                     only: Optional[Collection[str]] = None, settings: Optional[LidarSettings] = None) -> LidarRender:
+        """Render LiDAR ``rays`` (one sensor pose, R rays) at scene moment ``time``: what
+        :meth:`drawn` yields (``edits``, ``only``, ``hidden`` as there), activated, with the
+        learned LiDAR features as colours, through the rasterizer's ``rasterize_lidar``
+        (:meth:`omnire.model.SceneModel.render_lidar`). Per ray: range, median range,
+        intensity, ray-drop probability (:class:`~omnire.lidarmodel.LidarRender`)."""
+        drawn = list(self.drawn(time, edits, only, hidden))
+        outputs = self.node_outputs(drawn, None, time, step)
+        return self.model.render_lidar([(d.node, out) for d, (_, out) in zip(drawn, outputs)], rays, settings)
+
+    def render_sweep(self, sweep: SensorRays, path: SensorPath, sectors: int = 1, step: Optional[int] = None,
+                     hidden: Collection[str] = frozenset(), edits: Optional[ActorEdits] = None,
+                     settings: Optional[LidarSettings] = None) -> LidarRender:
+        """Render a sweep's rays (:class:`~omnire.lidarsweep.SensorRays`, in the order given)
+        from the sensor poses ``path`` gives at their times, in ``sectors`` equal time spans
+        (rolling shutter: each span's rays see the scene, and are cast from the sensor, at the
+        span's middle time; :func:`~omnire.lidarsweep.sectors_of`)."""
+        parts, order = [], []
+        t0 = float(self.scene.frame_timestamps[0])
+        for sector in sectors_of(sweep, path, sectors, self.device):
+            parts.append(self.render_lidar(sector.rays, self.time_since_start(sector.time - t0), step, hidden, edits,
+                                           settings=settings))
+            order.append(sector.index)
+        if not parts:
+            empty = torch.zeros(0, device=self.device)
+            return LidarRender(empty, empty, empty, empty, empty)
+        return LidarRender.cat(parts, torch.cat(order))
 
     def render_view(self, view: View, step: Optional[int] = None) -> RenderResult:
         """Render the recorded camera and moment of ``view``."""
