@@ -28,6 +28,7 @@ from __future__ import annotations
 import copy
 import logging
 from pathlib import Path
+from time import perf_counter
 from typing import Collection, Iterable, Iterator, Mapping, Optional, Protocol
 
 import torch
@@ -380,11 +381,16 @@ class Reconstruction:
         """Render what :meth:`drawn` yields at ``time`` through ``camera``. ``step``: the
         training step (for warm-up schedules; None renders the trained model); ``hidden``:
         node names not drawn; ``edits``, ``only``: as :meth:`drawn` (with ``only`` the
-        environment is left out too)."""
+        environment is left out too). The result's ``timings`` add the node evaluation
+        (``nodes``) to the rasterizer path's."""
+        clock = perf_counter()
         parts = self.node_outputs(self.drawn(time, edits, only, hidden), camera, time, step)
+        seconds = perf_counter() - clock
         if only is not None:
             hidden = frozenset(hidden) | frozenset(self.environment_nodes())
-        return self.render_outputs(parts, camera, time, step, sh_degree, hidden)
+        result = self.render_outputs(parts, camera, time, step, sh_degree, hidden)
+        result.timings["nodes"] = seconds
+        return result
 
     def render_view(self, view: View, step: Optional[int] = None) -> RenderResult:
         """Render the recorded camera and moment of ``view``."""
