@@ -7,6 +7,7 @@ environment (sky) node under the Gaussians: C = C_gs + (1 - O_gs) C_env.
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import Any, Optional
 
 import numpy as np
@@ -32,7 +33,9 @@ class ModelBuildError(UserError):
 @dataclasses.dataclass
 class RenderResult:
     """A rendered view. rgb/depth/alpha are (H, W, C); ``slices`` map rendered rows to
-    nodes; ``outputs`` hold what each node produced (for its regulariser)."""
+    nodes; ``outputs`` hold what each node produced (for its regulariser); ``timings``: wall
+    seconds of the render's stages by name (``nodes``, ``raster`` and the rasterizer's own
+    ``raster.*``, ``environment``), as far as the path measured them (profiles only)."""
 
     rgb: torch.Tensor
     depth: torch.Tensor
@@ -42,6 +45,7 @@ class RenderResult:
     slices: list[NodeSlice]
     num_gaussians: int
     outputs: dict[str, NodeOutput] = dataclasses.field(default_factory=dict)
+    timings: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
 def cull_to_frustum(g: Gaussians, rows: Optional[torch.Tensor], camera: Camera
@@ -290,15 +294,12 @@ class SceneModel(nn.Module):
         """Render node outputs (name, output or None), e.g. actors in edited states: the
         inference path when :meth:`fast_inference`, the fused training path when
         :meth:`fused_training`, else :meth:`assemble` + :meth:`composite`. A recorded
-        camera sees them at its refined pose (:meth:`seen_from`; the fused training path hands
-        the rasterizer the move instead of moved copies)."""
-        if self.fused_training():
+        camera sees them at its refined pose (:meth:`seen_from`; the native paths hand the
+        rasterizer the move instead of moved copies)."""
+        if self.fused_training() or self.fast_inference():
             moved = self.camera_poses.world_transform(camera, t) if self.camera_poses is not None else None
-            return self._render_native(parts, camera, t, sh_degree, hidden, train=True, moved=moved)
-        parts = self.seen_from(parts, camera, t)
-        if self.fast_inference():
-            return self._render_native(parts, camera, t, sh_degree, hidden, train=False)
-        g, slices, outputs = self.assemble(parts, camera)
+            return self._render_native(parts, camera, t, sh_degree, hidden, train=self.fused_training(), moved=moved)
+        g, slices, outputs = self.assemble(self.seen_from(parts, camera, t), camera)
         return self.composite(g, slices, outputs, camera, t, sh_degree, hidden)
 
     def _render_native(self, parts: list[tuple[str, Optional[NodeOutput]]], camera: Camera, t: SceneTime,
@@ -306,9 +307,10 @@ class SceneModel(nn.Module):
                        moved: Optional[tuple[torch.Tensor, torch.Tensor]] = None) -> RenderResult:
         """:meth:`render_parts` through the rasterizer's own raw-Gaussian path: node outputs
         go in as parts, uncopied (``rasterize_gaussians_train`` with autograd when ``train``,
-        else ``rasterize_gaussians``); the rasterizer culls to the view itself
-        (``cull_to_view``) and ``num_gaussians`` counts the rows it kept. ``moved`` (training
-        only): the camera-pose correction's world transform, applied by the rasterizer."""
+        else ``rasterize_gaussians``), placed outputs box-local under their poses; the
+        rasterizer culls to the view itself (``cull_to_view``) and ``num_gaussians`` counts
+        the rows it kept. ``moved``: the camera-pose correction's world transform, applied
+        by the rasterizer."""
         gs, placements, slices, outputs, start = [], [], [], {}, 0
         for name, out in parts:
             if out is None:
@@ -318,8 +320,8 @@ class SceneModel(nn.Module):
                 outputs[name] = out
             if n == 0:
                 continue
-            # training draws placed outputs box-local under their poses: no world copy
-            placed = train and out.placement is not None
+            # placed outputs are drawn box-local under their poses: no world copy
+            placed = out.placement is not None
             gs.append(out.local if placed else out.gaussians)
             placements.append(out.placement if placed else None)
             slices.append(NodeSlice(name, start, start + n, out.rows))
@@ -328,16 +330,15 @@ class SceneModel(nn.Module):
             return self.composite(None, slices, outputs, camera, t, sh_degree, hidden)
         env = {n: m for n, m in self.environment_nodes().items() if n not in hidden}
         settings = RasterSettings(background=None if env else self._background)
-        if train:
-            out, kept = self.rasterizer.rasterize_gaussians_train(gs, camera, sh_degree, settings,
-                                                                  cull=self.method.cull_to_view, moved=moved,
-                                                                  placements=placements)
-        else:
-            # colours use bands up to min(sh_degree, the largest degree present), as Gaussians.cat + colors do
-            degree = min(sh_degree, max(g.sh_degree for g in gs))
-            out, kept = self.rasterizer.rasterize_gaussians(gs, camera, degree, settings, cull=self.method.cull_to_view)
+        draw = self.rasterizer.rasterize_gaussians_train if train else self.rasterizer.rasterize_gaussians
+        clock = time.perf_counter()
+        out, kept = draw(gs, camera, sh_degree, settings, cull=self.method.cull_to_view, moved=moved,
+                         placements=placements)
+        timings = {"raster": time.perf_counter() - clock, **out.timings}
+        clock = time.perf_counter()
         rgb = self.finish_image(out.rgb, out.alpha, env, camera, t)
-        return RenderResult(rgb, out.depth, out.alpha, out.absgrad2d, out.radii, slices, kept, outputs)
+        timings["environment"] = time.perf_counter() - clock
+        return RenderResult(rgb, out.depth, out.alpha, out.absgrad2d, out.radii, slices, kept, outputs, timings)
 
     def render_lidar(self, parts: list[tuple[Node, Optional[NodeOutput]]], rays, settings=None) -> LidarRender:
         """Render the world Gaussians of node outputs ``parts`` ((node, output or None), e.g.

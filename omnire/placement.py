@@ -68,9 +68,9 @@ class Placement:
         device = self.R.device
         lengths = torch.tensor(self.lengths, dtype=torch.long, device=device)
         starts = torch.tensor(self.starts, dtype=torch.long, device=device)
-        seg = torch.repeat_interleave(torch.arange(len(self.lengths), device=device), lengths)
         # row k = its segment's start + (k - the first output index of its segment)
-        return starts[seg] + torch.arange(self.num_rows, device=device) - (torch.cumsum(lengths, 0) - lengths)[seg]
+        shift = torch.repeat_interleave(starts - (torch.cumsum(lengths, 0) - lengths), lengths, output_size=self.num_rows)
+        return shift + torch.arange(self.num_rows, device=device)
 
     def check_source(self, num_gaussians: int) -> None:
         """Raise ValueError unless Gaussians of ``num_gaussians`` rows can be placed."""

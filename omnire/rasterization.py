@@ -124,12 +124,16 @@ class RasterInputError(ValueError):
 
 @dataclasses.dataclass
 class RenderOutput:
+    """What a rasterizer returns (see the module docstring); ``timings``: wall seconds of
+    the stages the backend measured, by name (empty when it measures none; profiles only)."""
+
     rgb: torch.Tensor
     depth: torch.Tensor
     alpha: torch.Tensor
     radii: torch.Tensor
     means2d: torch.Tensor
     absgrad2d: torch.Tensor
+    timings: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
@@ -211,10 +215,13 @@ class Rasterizer(Protocol):
 
 class InferenceRasterizer(Protocol):
     """The ``inference`` capability: raw Gaussians (unactivated, SH coefficients) of several
-    node outputs rendered without gradients. Returns the image and how many rows it drew."""
+    node outputs rendered without gradients; ``moved`` and ``placements`` as
+    :class:`FusedTrainingRasterizer` takes them. Returns the image and how many rows it drew."""
 
     def rasterize_gaussians(self, parts: list["Gaussians"], camera: Camera, sh_degree: int,
-                            settings: RasterSettings = RasterSettings(), cull: bool = True
+                            settings: RasterSettings = RasterSettings(), cull: bool = True,
+                            moved: Optional[tuple[torch.Tensor, torch.Tensor]] = None,
+                            placements: Optional[list[Optional["Placement"]]] = None
                             ) -> tuple[RenderOutput, int]:
         ...
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 import copy
 import logging
 from pathlib import Path
+from time import perf_counter
 from typing import TYPE_CHECKING, Collection, Iterable, Iterator, Mapping, Optional, Protocol
 
 import torch
@@ -410,11 +411,16 @@ class Reconstruction:
         schedule step of training (:mod:`omnire.schedule`; for warm-up schedules; None renders
         the trained model); ``hidden``:
         node names not drawn; ``edits``, ``only``: as :meth:`drawn` (with ``only`` the
-        environment is left out too)."""
+        environment is left out too). The result's ``timings`` add the node evaluation
+        (``nodes``) to the rasterizer path's."""
+        clock = perf_counter()
         parts = self.node_outputs(self.drawn(time, edits, only, hidden), camera, time, step)
+        seconds = perf_counter() - clock
         if only is not None:
             hidden = frozenset(hidden) | frozenset(self.environment_nodes())
-        return self.render_outputs(parts, camera, time, step, sh_degree, hidden)
+        result = self.render_outputs(parts, camera, time, step, sh_degree, hidden)
+        result.timings["nodes"] = seconds
+        return result
 
     def render_lidar(self, rays: LidarRays, time: SceneTime, step: Optional[int] = None,
                      hidden: Collection[str] = frozenset(), edits: Optional[ActorEdits] = None,

@@ -25,7 +25,7 @@ from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 from omnire.geometry import axis_angle_to_rotmat, quat_multiply, rotmat_to_quat, slerp_rotmats
 from omnire.interpolation import bracket
 from omnire.camera import Camera, gaussian_reach, may_be_drawn
-from omnire.nodes.base import GaussianNode, GaussianNodeConfig, NodeContext, NodeOutput, ParamGroup
+from omnire.nodes.base import Derived, GaussianNode, GaussianNodeConfig, NodeContext, NodeOutput, ParamGroup
 from omnire.placement import Placement
 from omnire.pointcloud import points_in_box
 from omnire.rowsparse import gather_rows
@@ -271,6 +271,7 @@ class ActorNode(GaussianNode):
         self.track_ids = [t.track_id for t in tracks]
         self.poses = ActorPoses(tracks, context.scene.train_frames, refine_boxes, context.device)
         self._offsets: Optional[tuple[torch.Tensor, torch.Tensor]] = None  # (instance tensor, offsets) cache
+        self.reach_of_instances = Derived()  # (I,) what instance_reach indexes, kept while the parameters hold
 
     def instance_offsets(self) -> torch.Tensor:
         """(I+1,) row offsets per instance, recomputed only when the Gaussians change."""
@@ -394,10 +395,16 @@ class BoxActorNode(ActorNode):
 
     def instance_reach(self, state: ActorState) -> Optional[torch.Tensor]:
         """A box moves its Gaussians rigidly: the largest |box-local mean| + Gaussian reach
-        over each actor's rows (0 for an actor with no rows)."""
+        over each actor's rows (0 for an actor with no rows); computed again only when the
+        parameters change."""
         p = self.gaussian_params
-        row_reach = p["means"].detach().norm(dim=-1) + gaussian_reach(p["scales"])
-        return segment_max(row_reach, self.instance_offsets())[state.ids]
+
+        def every_instance() -> torch.Tensor:
+            row_reach = p["means"].detach().norm(dim=-1) + gaussian_reach(p["scales"].detach())
+            return segment_max(row_reach, self.instance_offsets())
+
+        sources = (p["means"], p["scales"], self.gaussian_buffers["instance"])
+        return self.reach_of_instances.get(sources, every_instance)[state.ids]
 
 
 def box_local_lidar(scene: SceneData, track: ActorTrack, frames: np.ndarray, margin: float = 0.1) -> tuple[np.ndarray, np.ndarray]:

@@ -34,6 +34,7 @@ image background (the sky) instead of holding Gaussians.
 from __future__ import annotations
 
 import dataclasses
+import weakref
 from typing import Any, Callable, Optional
 
 import torch
@@ -110,6 +111,27 @@ class NodeOutput:
     def with_gaussians(self, gaussians: Gaussians) -> "NodeOutput":
         """The same output with world Gaussians ``gaussians`` (e.g. moved) in place of its own."""
         return NodeOutput(gaussians, self.rows, self.time, self.extras)
+
+
+class Derived:
+    """One value computed from tensors and kept until one of them changes: another tensor
+    object, or the same one changed in place (torch's version counter counts in-place
+    writes, an optimiser step's too). For what renders need every frame but only a node's
+    parameters decide (e.g. how far each actor's Gaussians reach). Holds weak references to
+    the tensors, so it keeps none of them alive."""
+
+    def __init__(self) -> None:
+        self._sources: tuple = ()
+        self._value: Any = None
+
+    def get(self, sources: tuple[torch.Tensor, ...], compute: Callable[[], Any]) -> Any:
+        """The value of ``compute()`` for ``sources`` (computed now only when one changed)."""
+        current = tuple((weakref.ref(t), t._version) for t in sources)
+        if len(current) != len(self._sources) or any(
+                ref() is not t or version != old for (ref, old), t, (_, version) in zip(self._sources, sources, current)):
+            self._value = compute()
+            self._sources = current
+        return self._value
 
 
 @dataclasses.dataclass

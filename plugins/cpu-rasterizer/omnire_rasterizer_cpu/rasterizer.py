@@ -147,6 +147,38 @@ def kernel_groups(tensors: tuple[torch.Tensor, ...], picks: list[Optional[tuple]
             torch.tensor(blocks, dtype=torch.int64))
 
 
+STAGES = ("rows", "depth_order", "binning", "compositing")
+"""The kernel's stages, in order, as :attr:`RenderOutput.timings` names them (``raster.`` first):
+culling, activation, projection and SH colour of the rows; the depth sort and gather of the
+drawn ones; tile binning; per-pixel compositing."""
+
+
+def forward_raw(meta, picks, segments, R, t, qa, tensors) -> tuple[list[torch.Tensor], torch.Tensor, dict]:
+    """The kernel's forward of raw Gaussians (see :class:`_RasterizeGaussiansFn` for the
+    arguments): its outputs (acc, dn, alpha, radii, means2d, records, colours, drawn rows,
+    tile offsets, tile ids, Gaussians not rejected), the moves as the kernel takes them
+    (rows (S,), moves (S,16) float64, on (S,)) and the stages' wall seconds by name.
+    Refuses non-finite rows."""
+    sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads = meta
+    groups, spans, _ = kernel_groups(tensors, picks)
+    # x -> R x + t per segment: the kernel draws each through the view matrix composed with its move
+    seg_rows = torch.zeros(0, dtype=torch.int64)
+    moves = torch.zeros(0, 16, dtype=torch.float64)
+    move_on = torch.zeros(0, dtype=torch.bool)
+    if segments is not None:
+        seg_rows = torch.tensor(segments[0], dtype=torch.int64)
+        move_on = torch.tensor(segments[1], dtype=torch.bool)
+        moves = torch.cat([R.detach().reshape(-1, 9), t.detach(), qa.detach()], 1).to(torch.float64).contiguous()
+    out = _ext().forward_train(*groups, spans, sh_degree, center, seg_rows, moves, move_on, viewmat, K, width,
+                               height, near, far, eps2d, cull, nthreads)
+    bad, stages = out[10], out[12]
+    if int(bad[0]) >= 0:
+        raise RasterInputError(f"Gaussian row {int(bad[0])} (of the {len(tensors) // 6} concatenated parts) has "
+                               "non-finite parameters or colour; refusing to render a NaN image")
+    timings = {f"raster.{name}": float(v) for name, v in zip(STAGES, stages.tolist())}
+    return out[:10] + [out[11]], (seg_rows, moves, move_on), timings
+
+
 class _RasterizeGaussiansFn(torch.autograd.Function):
     """Training path from raw Gaussians in G groups (node outputs, not concatenated).
 
@@ -156,36 +188,23 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
     place, whose gradients are returned row-sparse), ``segments`` (row counts (S) of
     consecutive segments of the drawn rows, and whether each is moved; None: nothing moved)
     with the segments' moves x -> R x + t (rotations R (S,3,3), translations t (S,3), R's
-    quaternions qa (S,4); None without segments), then 6 tensors per part: means (n,3),
-    quats (n,4), log-scales (n,3), opacity logits (n,), sh0 (n,1,3), shN (n,K,3).
+    quaternions qa (S,4); None without segments), ``timings`` (a dict the stages' wall
+    seconds are put in), then 6 tensors per part: means (n,3), quats (n,4), log-scales (n,3),
+    opacity logits (n,), sh0 (n,1,3), shN (n,K,3).
     Outputs: acc (H,W,3), depth numerator (H,W), alpha (H,W), radii (N,) int32, means2d (N,2),
     Gaussians not rejected (1,) int64 (the last three carry no gradient). Gradients reach every raw tensor of every group.
     """
 
     @staticmethod
-    def forward(ctx, meta, absgrad, picks, segments, R, t, qa, *tensors):
-        sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads = meta
-        G = len(tensors) // 6
-        groups, spans, blocks = kernel_groups(tensors, picks)
-        # x -> R x + t per segment: the kernel draws each through the view matrix composed with its move
-        seg_rows = torch.zeros(0, dtype=torch.int64)
-        moves = torch.zeros(0, 16, dtype=torch.float64)
-        move_on = torch.zeros(0, dtype=torch.bool)
+    def forward(ctx, meta, absgrad, picks, segments, R, t, qa, timings, *tensors):
+        (acc, dn, alpha, radii, means2d, rec, col, gidx, offsets, ids, kept), ctx.segments, stages = forward_raw(
+            meta, picks, segments, R, t, qa, tensors)
+        timings.update(stages)
         if segments is not None:
-            seg_rows = torch.tensor(segments[0], dtype=torch.int64)
-            move_on = torch.tensor(segments[1], dtype=torch.bool)
-            moves = torch.cat([R.detach().reshape(-1, 9), t.detach(), qa.detach()], 1).to(torch.float64).contiguous()
             ctx.move_rotation = R.detach()
-        ctx.segments = (seg_rows, moves, move_on)
-        (acc, dn, alpha, radii, means2d, rec, col, gidx, offsets, ids, bad, kept) = _ext().forward_train(
-            *groups, spans, sh_degree, center, seg_rows, moves, move_on, viewmat, K, width, height, near, far,
-            eps2d, cull, nthreads)
-        if int(bad[0]) >= 0:
-            raise RasterInputError(f"Gaussian row {int(bad[0])} (of the {G} concatenated parts) has non-finite "
-                                   "parameters or colour; refusing to render a NaN image")
-        ctx.meta = (sh_degree, center, viewmat, K, width, height, near, far, eps2d, cull, nthreads)
+        ctx.meta = meta
         ctx.absgrad = absgrad
-        ctx.num_groups = G
+        ctx.num_groups = len(tensors) // 6
         ctx.picks = picks
         ctx.save_for_backward(*tensors, rec, col, gidx, offsets, ids, acc, dn, alpha)
         ctx.mark_non_differentiable(radii, means2d, kept)
@@ -225,7 +244,7 @@ class _RasterizeGaussiansFn(torch.autograd.Function):
             for k in range(6):  # the picked rows' gradients, row-sparse as omnire.rowsparse.gather_rows gives them
                 if grads[6 * i + k] is not None:
                     grads[6 * i + k] = row_sparse(rows, grads[6 * i + k], tensors[6 * i + k].shape)
-        return (None, None, None, None, g_R, g_t, g_qa, *grads)
+        return (None, None, None, None, g_R, g_t, g_qa, None, *grads)
 
 
 class CpuRasterizer:
@@ -275,48 +294,23 @@ class CpuRasterizer:
         )
 
     def rasterize_gaussians(self, parts: list[Gaussians], camera: Camera, sh_degree: int,
-                            settings: RasterSettings = RasterSettings(), cull: bool = True
+                            settings: RasterSettings = RasterSettings(), cull: bool = True,
+                            moved: Optional[tuple[torch.Tensor, torch.Tensor]] = None,
+                            placements: Optional[list[Optional[Placement]]] = None
                             ) -> tuple[RenderOutput, int]:
-        """Inference-only rendering of Gaussians in parts (node outputs, not concatenated):
-        SH colours (bands up to ``sh_degree``, seen from the camera centre) evaluated
-        natively and only for the Gaussians that are drawn, Gaussians that cannot reach the
-        image rejected before their covariance is built, nothing kept for a backward pass.
-        Same pixels as :meth:`rasterize` on the activated, concatenated Gaussians with colours
-        from :meth:`Gaussians.colors` (alphas bit-identical; colours up to float rounding);
-        outputs index the parts in order. ``cull``: reject Gaussians that cannot reach the
-        image before building their covariance. Returns the output and the number of
-        Gaussians not culled. No gradients: call without autograd."""
+        """Inference-only rendering of raw Gaussians in parts: the forward of
+        :meth:`rasterize_gaussians_train` (same arguments, same pixels) with nothing kept for
+        a backward pass. Gaussians that cannot reach the image are rejected before their
+        covariance is built (``cull``); activation and SH colour (bands up to ``sh_degree``,
+        seen from the camera centre) run only for the others. ``RenderOutput.timings`` holds the kernel's stages (:data:`STAGES`). Returns the
+        output and the number of Gaussians not rejected. No gradients: call without autograd."""
         if torch.is_grad_enabled() and any(p.means.requires_grad for p in parts):
             raise RuntimeError("rasterize_gaussians is inference-only: call it under torch.no_grad()")
-        if camera.device.type != "cpu" or any(p.means.device.type != "cpu" for p in parts):
-            raise RasterInputError("the cpu rasterizer needs CPU tensors")
-
-        def prep(t: torch.Tensor) -> torch.Tensor:
-            return t.detach().to(torch.float32).contiguous()
-
-        cols = {k: [prep(getattr(p, k)) for p in parts] for k in ("means", "quats", "sh0", "shN")}
-        # activations by torch, as the training path does them: identical alphas
-        cols["scales"] = [prep(p.activated_scales) for p in parts]
-        cols["opacities"] = [prep(p.activated_opacities) for p in parts]
-        for name, ts in cols.items():
-            for t in ts:
-                if name in ("means", "scales") and (t.ndim != 2 or t.shape[1] != 3):
-                    raise RasterInputError(f"{name}: shape {tuple(t.shape)}, expected (N, 3)")
-        nthreads = self.num_threads or torch.get_num_threads()
-        acc, dn, alpha, radii, means2d, bad, kept = _ext().forward_gaussians(
-            cols["means"], cols["quats"], cols["scales"], cols["opacities"], cols["sh0"], cols["shN"], int(sh_degree),
-            camera.center.detach(), camera.world_to_cam.detach().to(torch.float64).contiguous(),
-            camera.K.detach().to(torch.float64).contiguous(), int(camera.width), int(camera.height),
-            float(settings.near), float(settings.far), float(settings.eps2d), bool(cull), int(nthreads))
-        if int(bad[0]) >= 0:
-            raise RasterInputError(f"Gaussian row {int(bad[0])} (of the concatenated parts) has non-finite parameters; "
-                                   "refusing to render a NaN image")
-        rgb = acc
-        if settings.background is not None:
-            rgb = acc + (1.0 - alpha)[..., None] * settings.background.to(acc)
-        depth = dn / alpha.clamp_min(1e-10)
-        return RenderOutput(rgb=rgb, depth=depth[..., None], alpha=alpha[..., None], radii=radii, means2d=means2d,
-                            absgrad2d=torch.zeros(len(radii), 2)), int(kept[0])
+        meta, picks, segments, R, t, qa, tensors = self._raw_inputs(parts, camera, sh_degree, settings, cull, moved,
+                                                                    placements)
+        (acc, dn, alpha, radii, means2d, *_, kept), _, timings = forward_raw(meta, picks, segments, R, t, qa,
+                                                                              tensors)
+        return self._output(acc, dn, alpha, radii, means2d, torch.zeros(len(radii), 2), settings, timings), int(kept[0])
 
     def rasterize_gaussians_train(self, parts: list[Gaussians], camera: Camera, sh_degree: int,
                                   settings: RasterSettings = RasterSettings(), cull: bool = True,
@@ -347,8 +341,22 @@ class CpuRasterizer:
         (e.g. a node's parameters) in place, and the part's gradients are row-sparse over them.
         Same pixels and gradients as drawing ``placement.apply(part)``, up to float rounding;
         ``radii`` and ``absgrad2d`` then index the drawn rows."""
+        meta, picks, segments, R, t, qa, tensors = self._raw_inputs(parts, camera, sh_degree, settings, cull, moved,
+                                                                    placements)
+        N = sum(len(p) if pick is None else len(pick[2]) for p, pick in zip(parts, picks))
+        absgrad = torch.zeros(N, 2, dtype=tensors[0].dtype)
+        timings: dict[str, float] = {}
+        acc, dn, alpha, radii, means2d, kept = _RasterizeGaussiansFn.apply(meta, absgrad, picks, segments, R, t, qa,
+                                                                           timings, *tensors)
+        return self._output(acc, dn, alpha, radii, means2d, absgrad, settings, timings), int(kept[0])
+
+    def _raw_inputs(self, parts: list[Gaussians], camera: Camera, sh_degree: int, settings: RasterSettings,
+                    cull: bool, moved: Optional[tuple[torch.Tensor, torch.Tensor]],
+                    placements: Optional[list[Optional[Placement]]]) -> tuple:
+        """The kernel's inputs for raw Gaussian ``parts`` (see :class:`_RasterizeGaussiansFn`):
+        (meta, picks, segments, R, t, qa, 6 tensors per part), the parts' tensors checked."""
         if not parts:
-            raise RasterInputError("rasterize_gaussians_train: no parts")
+            raise RasterInputError("rasterize_gaussians: no parts")
         if camera.device.type != "cpu" or any(p.means.device.type != "cpu" for p in parts):
             raise RasterInputError("the cpu rasterizer needs CPU tensors")
         dtype = torch.float64 if parts[0].means.dtype == torch.float64 else torch.float32
@@ -366,22 +374,24 @@ class CpuRasterizer:
                    for p in parts for k, t in zip(GAUSSIAN_KEYS, (getattr(p, k) for k in GAUSSIAN_KEYS))]
         picks = [None if pl is None or pl.starts is None else (pl.starts, pl.lengths, pl.rows)
                  for pl in (placements or [None] * len(parts))]
-        N = sum(len(p) if pick is None else len(pick[2]) for p, pick in zip(parts, picks))
-        absgrad = torch.zeros(N, 2, dtype=dtype)
         meta = (int(sh_degree), camera.center.detach().to(torch.float64).contiguous(),
                 camera.world_to_cam.detach().to(torch.float64).contiguous(),
                 camera.K.detach().to(torch.float64).contiguous(), int(camera.width), int(camera.height),
                 float(settings.near), float(settings.far), float(settings.eps2d), bool(cull),
                 int(self.num_threads or torch.get_num_threads()))
         segments, R, t, qa = row_moves(parts, moved, placements, dtype)
-        acc, dn, alpha, radii, means2d, kept = _RasterizeGaussiansFn.apply(meta, absgrad, picks, segments, R, t, qa,
-                                                                           *tensors)
+        return meta, picks, segments, R, t, qa, tensors
+
+    @staticmethod
+    def _output(acc, dn, alpha, radii, means2d, absgrad, settings: RasterSettings, timings: dict) -> RenderOutput:
+        """The kernel's accumulations as a :class:`RenderOutput`: ``settings.background``
+        composited under them, the expected depth divided out."""
         rgb = acc
         if settings.background is not None:
-            rgb = acc + (1.0 - alpha)[..., None] * settings.background.to(dtype)
+            rgb = acc + (1.0 - alpha)[..., None] * settings.background.to(acc.dtype)
         depth = dn / alpha.clamp_min(1e-10)
         return RenderOutput(rgb=rgb, depth=depth[..., None], alpha=alpha[..., None], radii=radii, means2d=means2d,
-                            absgrad2d=absgrad), int(kept[0])
+                            absgrad2d=absgrad, timings=timings)
 
     def rasterize_lidar(self, splats: Splats, rays: LidarRays, settings: LidarSettings = LidarSettings()
                         ) -> LidarRenderOutput:

@@ -86,3 +86,39 @@ def test_extent_is_the_bounding_box_of_the_alpha_ellipse():
     assert (ex[well] <= tight_x[well] * 1.0003 + 1e-4).all(), float((ex - tight_x)[well].max())
     assert (ey[well] <= tight_y[well] * 1.0003 + 1e-4).all(), float((ey - tight_y)[well].max())
     assert math.isfinite(float(ex.max()))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_tile_lists_hold_only_tiles_the_alpha_ellipse_reaches(seed):
+    """A Gaussian whose rect spans several tiles is listed only in tiles holding a pixel
+    centre inside its alpha ellipse {q <= T} (T: the extent's threshold with its margins,
+    from the record as stored; brute force in float64): the thin tilted ones leave out
+    tiles of their bounding box, and the rendered pixels are the brute-force ones (above)."""
+    _acc, _dn, _alpha, radii, _m2d, rec, offsets, ids = forward(elongated_scene(seed))
+    r = rec.double()
+    listed: dict[int, list[int]] = {}
+    for t in range(TILES_X * TILES_Y):
+        for i in ids[offsets[t]:offsets[t + 1]].tolist():
+            listed.setdefault(i, []).append(t)
+    pairs_in_rects = 0
+    for i, tiles in listed.items():
+        mx, my, a, b, c = (float(v) for v in r[i, :5])
+        det = a * c - b * b
+        T = max(0.0, (-2.0 * (float(r[i, 9]) + 0.01) + 0.01) * (1.0 + 1e-5 * (a + c) ** 2 / det))
+        ex, ey = float(r[i, 7]), float(r[i, 8])
+        r3 = float(radii[i])  # the rect: the 3-sigma radius's tiles narrowed to the extent's
+        tx0 = max(0, math.floor((mx - r3) / TILE), math.floor((mx - ex - 0.5) / TILE))
+        tx1 = min(TILES_X, math.ceil((mx + r3) / TILE), math.floor((mx + ex - 0.5) / TILE) + 1)
+        ty0 = max(0, math.floor((my - r3) / TILE), math.floor((my - ey - 0.5) / TILE))
+        ty1 = min(TILES_Y, math.ceil((my + r3) / TILE), math.floor((my + ey - 0.5) / TILE) + 1)
+        pairs_in_rects += max(0, tx1 - tx0) * max(0, ty1 - ty0)
+        if len(tiles) == 1 and (tx1 - tx0) * (ty1 - ty0) <= 1:
+            continue
+        for t in tiles:
+            x0, y0 = (t % TILES_X) * TILE, (t // TILES_X) * TILE
+            xs = torch.arange(x0, min(x0 + TILE, W), dtype=torch.float64) + 0.5 - mx
+            ys = torch.arange(y0, min(y0 + TILE, H), dtype=torch.float64) + 0.5 - my
+            dy, dx = torch.meshgrid(ys, xs, indexing="ij")
+            q = a * dx * dx + 2 * b * dx * dy + c * dy * dy
+            assert float(q.min()) <= T * (1 + 1e-9), f"Gaussian {i} listed in tile {t}, which its ellipse misses"
+    assert len(ids) < 0.9 * pairs_in_rects  # the thin tilted ones skip tiles of their bounding boxes

@@ -1,8 +1,10 @@
 """``omnire bench serve RUN``: latency of renders through a real ``omnire serve`` process
 (started on a free port, stopped at the end): one camera (``/render_image``) and the whole
 rig (``/render_rig``) at ``--width`` x ``--height``, with 1 and 4 concurrent clients, each
-request timed end to end by the client (HTTP, rendering, encoding, decoding). Poses and
-times cycle through the recorded frames. Writes JSON (``--output``) and prints a table."""
+request timed end to end by the client (HTTP, rendering, encoding, decoding), and split by
+the server's ``Server-Timing`` into render (waiting for the render lock included), encode
+and the rest (HTTP, JSON, the client's decoding). Poses and times cycle through the
+recorded frames. Writes JSON (``--output``) and prints a table."""
 from __future__ import annotations
 
 import dataclasses
@@ -40,9 +42,10 @@ class BenchServeArgs:
     """JSON file to write (default: print only)."""
 
 
-def _time_requests(url: str, clients: int, n: int, call) -> list[float]:
-    """Seconds of each of ``n`` timed requests of every client (``clients`` threads)."""
-    out: list[float] = []
+def _time_requests(url: str, clients: int, n: int, call) -> list[tuple[float, float, float]]:
+    """(seconds end to end, render, encode) of each of ``n`` timed requests of every
+    client (``clients`` threads); the last two as the server reported them."""
+    out: list[tuple[float, float, float]] = []
     lock = threading.Lock()
     errors: list[BaseException] = []
 
@@ -54,8 +57,9 @@ def _time_requests(url: str, clients: int, n: int, call) -> list[float]:
                     call(client, i + k)
                     dt = time.perf_counter() - t0
                     if i >= 2:
+                        st = client.server_timing
                         with lock:
-                            out.append(dt)
+                            out.append((dt, st.get("render", float("nan")), st.get("encode", float("nan"))))
         except BaseException as exc:  # noqa: BLE001 - re-raised in the main thread
             errors.append(exc)
 
@@ -97,12 +101,16 @@ def run_bench(args: BenchServeArgs) -> dict:
         for case, call in (("camera", camera), ("rig", whole_rig)):
             for n_clients in args.clients:
                 t0 = time.perf_counter()
-                lat = np.asarray(_time_requests(server.url, n_clients, args.requests, call))
+                timed = np.asarray(_time_requests(server.url, n_clients, args.requests, call))
                 wall = time.perf_counter() - t0
+                lat, render, encode = timed[:, 0], timed[:, 1], timed[:, 2]
                 rows.append({"case": case, "cameras": 1 if case == "camera" else len(meta["cameras"]),
                              "clients": n_clients, "requests": int(lat.size),
                              "p50_ms": round(float(np.percentile(lat, 50)) * 1e3, 1),
                              "p95_ms": round(float(np.percentile(lat, 95)) * 1e3, 1),
+                             "render_p50_ms": round(float(np.percentile(render, 50)) * 1e3, 1),
+                             "encode_p50_ms": round(float(np.percentile(encode, 50)) * 1e3, 1),
+                             "rest_p50_ms": round(float(np.percentile(lat - render - encode, 50)) * 1e3, 1),
                              "requests_per_s": round(n_clients * (args.requests + 2) / wall, 2)})
     finally:
         server.stop()
@@ -114,10 +122,12 @@ def run_bench(args: BenchServeArgs) -> dict:
 
 def table(result: dict) -> str:
     w, h = result["size"]
-    lines = [f"| case ({w}x{h}) | cameras | clients | p50 ms | p95 ms | requests/s |", "|---|---|---|---|---|---|"]
+    header = (f"| case ({w}x{h}) | cameras | clients | p50 ms | p95 ms | render p50 | encode p50 | rest p50 | "
+              "requests/s |")
+    lines = [header, "|---|---|---|---|---|---|---|---|---|"]
     for r in result["results"]:
         lines.append(f"| {r['case']} | {r['cameras']} | {r['clients']} | {r['p50_ms']} | {r['p95_ms']} | "
-                     f"{r['requests_per_s']} |")
+                     f"{r['render_p50_ms']} | {r['encode_p50_ms']} | {r['rest_p50_ms']} | {r['requests_per_s']} |")
     return "\n".join(lines)
 
 

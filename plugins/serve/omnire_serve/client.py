@@ -22,9 +22,27 @@ class ServerRefused(Exception):
         self.status, self.field, self.message = status, field, message
 
 
+def parse_server_timing(header: str) -> dict[str, float]:
+    """``Server-Timing`` entries (``name;dur=ms, ...``) as seconds by name; entries
+    without a duration are left out."""
+    out = {}
+    for entry in header.split(","):
+        name, *params = (p.strip() for p in entry.split(";"))
+        for p in params:
+            key, _, value = p.partition("=")
+            if name and key == "dur":
+                try:
+                    out[name] = float(value) / 1e3
+                except ValueError:
+                    pass
+    return out
+
+
 class OmnireClient(contextlib.AbstractContextManager):
     """A client of one server (``url``, e.g. ``http://127.0.0.1:8000``) in one session.
-    ``token``: sent as ``Authorization: Bearer``; ``session``: the X-Omnire-Session id."""
+    ``token``: sent as ``Authorization: Bearer``; ``session``: the X-Omnire-Session id.
+    ``server_timing``: the stages (seconds by name) the server reported for the last
+    response (``Server-Timing``; empty when it sent none)."""
 
     def __init__(self, url: str, token: Optional[str] = None, session: str = "default",
                  timeout: float = 120.0) -> None:
@@ -32,6 +50,7 @@ class OmnireClient(contextlib.AbstractContextManager):
         if token:
             headers["Authorization"] = f"Bearer {token}"
         self.http = httpx.Client(base_url=url, headers=headers, timeout=timeout)
+        self.server_timing: dict[str, float] = {}
 
     def close(self) -> None:
         self.http.close()
@@ -40,6 +59,7 @@ class OmnireClient(contextlib.AbstractContextManager):
         self.close()
 
     def _check(self, r: httpx.Response) -> httpx.Response:
+        self.server_timing = parse_server_timing(r.headers.get("server-timing", ""))
         if r.status_code >= 400:
             try:
                 err = r.json()["error"]

@@ -6,7 +6,9 @@ their request and response shapes, and omnire's own (``/metadata``, ``/render_ri
 Every refusal is JSON ``{"error": {"field": ..., "message": ...}}`` with a 4xx status;
 a failure inside the renderer is a 500 with the same shape; the server keeps serving.
 Sessions: the ``X-Omnire-Session`` header names the episode a request acts on (default
-``default``); each has its own edits and actor trajectories.
+``default``); each has its own edits and actor trajectories. Image responses carry a
+``Server-Timing`` header: ``render`` (waiting for the render lock included) and ``encode``,
+in milliseconds (``omnire bench serve`` reports them beside the client's latency).
 """
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ import json
 import logging
 import re
 import threading
+import time
 from typing import Any, Optional
 
 from fastapi import FastAPI, Request
@@ -114,6 +117,11 @@ def _format(data: dict, default: str) -> str:
     return fmt
 
 
+def server_timing(render: float, encode: float) -> dict[str, str]:
+    """The ``Server-Timing`` header of an image response: render and encode seconds, as ms."""
+    return {"Server-Timing": f"render;dur={render * 1e3:.2f}, encode;dur={encode * 1e3:.2f}"}
+
+
 def create_app(served: ServedScene, token: Optional[str] = None) -> FastAPI:
     """The application serving ``served``; ``token``: every request must carry
     ``Authorization: Bearer <token>`` (None: no token asked)."""
@@ -177,9 +185,12 @@ def create_app(served: ServedScene, token: Optional[str] = None) -> FastAPI:
         seconds = served.seconds_at(_field(data, "timestamp"))
         fmt = _format(data, "raw")
         size = served.size_of(_field(data, "width", None), _field(data, "height", None), c)
+        clock = time.perf_counter()
         image = await run_in_threadpool(episode.render_camera, c, pose, seconds, size)
+        rendered = time.perf_counter()
         content, media = encode(image, fmt)
-        return Response(content=content, media_type=media)
+        return Response(content=content, media_type=media,
+                        headers=server_timing(rendered - clock, time.perf_counter() - rendered))
 
     # ------------------------------------------------------------------ omnire's own
     @app.get("/metadata")
@@ -201,13 +212,17 @@ def create_app(served: ServedScene, token: Optional[str] = None) -> FastAPI:
             raise RequestError("cameras", "expected a non-empty list of camera names")
         fmt = _format(data, "png")
         sizes = [served.size_of(_field(data, "width", None), _field(data, "height", None), c) for c in cams]
+        clock = time.perf_counter()
         images = await run_in_threadpool(episode.render_rig, rig, seconds, cams, sizes)
+        rendered = time.perf_counter()
         out = {}
         for name, image in images.items():
             content, _ = encode(image, fmt)
             out[name] = {"width": image.shape[1], "height": image.shape[0], "format": fmt,
                          "data": content.decode() if fmt == "raw" else base64.b64encode(content).decode()}
-        return JSONResponse({"timestamp": data["timestamp"], "images": out})
+        response = JSONResponse({"timestamp": data["timestamp"], "images": out})
+        response.headers.update(server_timing(rendered - clock, time.perf_counter() - rendered))
+        return response
 
     @app.post("/actors_at")
     async def actors_at(request: Request):

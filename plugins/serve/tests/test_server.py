@@ -224,4 +224,6 @@ def test_bench_serve_writes_its_table(serve_run, tmp_path):
     assert set(rows) == {("camera", 1), ("camera", 2), ("rig", 1), ("rig", 2)}
     assert rows[("rig", 2)]["cameras"] == 3 and rows[("camera", 2)]["requests"] == 4
     assert all(0 < x["p50_ms"] <= x["p95_ms"] for x in rows.values())
+    # the server's Server-Timing split: rendering and encoding inside the client's latency
+    assert all(0 < x["render_p50_ms"] and 0 <= x["encode_p50_ms"] and x["rest_p50_ms"] > 0 for x in rows.values())
     assert "| rig | 3 | 2 |" in r.stdout

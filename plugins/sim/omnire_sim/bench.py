@@ -13,6 +13,13 @@ speed-up must not change the pixels. ``--training-path`` renders with autograd o
 plain torch composition (culling, concatenation, torch SH and activations, then the
 rasterizer: how every render was drawn before the no-grad inference path of
 ``SceneModel.render_parts`` existed): the reference the inference path is compared with.
+
+Every run and size also reports where a render's time goes (``stages_ms``, the second
+table): the mean of the stages the render measured (``RenderResult.timings``: node
+evaluation, the rasterizer's own stages, the rest of the rasterizer call, the environment
+(sky) and exposure), what the render spent outside them, and with ``--profile`` the
+conversion of the image to 8 bits and PNG (``omnire.api.write_png``, as ``omnire sim``
+writes frames).
 """
 from __future__ import annotations
 
@@ -55,6 +62,26 @@ class BenchRenderArgs:
     """Report the largest absolute pixel difference against renders saved by --save-images."""
     training_path: bool = False
     """Render with autograd on through the plain torch composition instead of the inference path: a reference for --compare-to."""
+    profile: bool = False
+    """Also time writing each render as an 8-bit PNG (a stage of the profile table)."""
+
+
+STAGE_COLUMNS = (("nodes", "nodes"), ("raster.rows", "rows"), ("raster.depth_order", "depth order"),
+                 ("raster.binning", "binning"), ("raster.compositing", "compositing"),
+                 ("raster.other", "raster other"), ("environment", "sky + exposure"), ("other", "other"),
+                 ("png", "PNG"))
+"""The profile table's stages (``stages_ms`` keys) and their column names."""
+
+
+def stage_times(timings: dict[str, float], total: float) -> dict[str, float]:
+    """Seconds per stage of one render from its ``RenderResult.timings`` and its wall time
+    ``total``: the rasterizer's unmeasured rest as ``raster.other``, the render's as ``other``."""
+    out = dict(timings)
+    if "raster" in out:
+        inner = sum(v for k, v in out.items() if k.startswith("raster."))
+        out["raster.other"] = out.pop("raster") - inner
+        out["other"] = total - inner - out["raster.other"] - out.get("nodes", 0.0) - out.get("environment", 0.0)
+    return out
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -80,11 +107,11 @@ def pick_views(scene, count: int) -> list:
 
 
 def measure(run: Path, plugins: Plugins, sizes: list[tuple[int, int]], views: int, warmup: int, threads: int,
-            save: Optional[Path], compare: Optional[Path], training_path: bool = False) -> dict:
+            save: Optional[Path], compare: Optional[Path], training_path: bool = False, profile: bool = False) -> dict:
     """Render ``run`` at every size (in this process); see the module docstring."""
     import torch
 
-    from omnire.api import Reconstruction
+    from omnire.api import Reconstruction, write_png
 
     torch.set_num_threads(threads)
     recon = Reconstruction.from_run(run, plugins)
@@ -100,11 +127,18 @@ def measure(run: Path, plugins: Plugins, sizes: list[tuple[int, int]], views: in
             cams = [(v, recon.camera(v).resized(w, h)) for v in chosen]
             for v, cam in cams[:warmup]:
                 recon.render(cam, recon.time(v.frame))
-            times, diff = [], 0.0
+            times, stages, diff = [], [], 0.0
             for v, cam in cams:
                 t0 = time.perf_counter()
-                rgb = recon.render(cam, recon.time(v.frame)).rgb
+                result = recon.render(cam, recon.time(v.frame))
                 times.append(time.perf_counter() - t0)
+                stages.append(stage_times(result.timings, times[-1]))
+                rgb = result.rgb
+                if profile:
+                    with tempfile.TemporaryDirectory() as tmp:
+                        t0 = time.perf_counter()
+                        write_png(Path(tmp) / "frame.png", rgb)
+                        stages[-1]["png"] = time.perf_counter() - t0
                 name = f"{key}/{w}x{h}/{recon.scene.cameras[v.camera].name}_{v.frame:04d}.npy"
                 img = rgb.detach().cpu().numpy().astype(np.float32)
                 if save is not None:
@@ -115,8 +149,11 @@ def measure(run: Path, plugins: Plugins, sizes: list[tuple[int, int]], views: in
                     if not ref.is_file():
                         raise ConfigError(f"--compare-to: {ref} missing (save it first with --save-images)")
                     diff = max(diff, float(np.abs(np.load(ref) - img).max()))
+            names = sorted({k for st in stages for k in st})
             out["sizes"][f"{w}x{h}"] = {"fps": len(times) / sum(times), "median_ms": 1000 * float(np.median(times)),
-                                       "max_abs_diff": diff if compare is not None else None}
+                                       "max_abs_diff": diff if compare is not None else None,
+                                       "stages_ms": {k: 1000 * float(np.mean([st.get(k, 0.0) for st in stages]))
+                                                     for k in names}}
     out["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return out
 
@@ -129,6 +166,18 @@ def format_table(results: list[dict]) -> str:
             diff = "-" if s["max_abs_diff"] is None else f"{s['max_abs_diff']:.2e}"
             rows.append(f"| {Path(r['run']).name} | {r['method']} | {r['gaussians']} | {size} | {r['views']} | "
                         f"{s['fps']:.2f} | {s['median_ms']:.1f} | {r['peak_mb']:.0f} | {diff} |")
+    return "\n".join(rows) + "\n"
+
+
+def format_profile(results: list[dict]) -> str:
+    """The mean ms per stage of every run and size (:data:`STAGE_COLUMNS`; '-' where not measured)."""
+    rows = ["| Run | Size | " + " | ".join(name for _, name in STAGE_COLUMNS) + " | total |",
+            "|---|---|" + "---|" * (len(STAGE_COLUMNS) + 1)]
+    for r in results:
+        for size, s in r["sizes"].items():
+            ms = s.get("stages_ms", {})
+            cells = [f"{ms[k]:.1f}" if k in ms else "-" for k, _ in STAGE_COLUMNS]
+            rows.append(f"| {Path(r['run']).name} | {size} | " + " | ".join(cells) + f" | {1000.0 / s['fps']:.1f} |")
     return "\n".join(rows) + "\n"
 
 
@@ -152,7 +201,8 @@ def main(argv: list[str], plugins) -> int:
             spec = {"run": str(run), "sizes": sizes, "views": args.views, "warmup": args.warmup,
                     "threads": args.threads, "save": str(args.save_images) if args.save_images else None,
                     "compare": str(args.compare_to) if args.compare_to else None, "result": str(result_file),
-                    "training_path": args.training_path, "plugins": plugins.selection.as_dict()}
+                    "training_path": args.training_path, "profile": args.profile,
+                    "plugins": plugins.selection.as_dict()}
             env = dict(os.environ, OMP_NUM_THREADS=str(args.threads))
             proc = subprocess.run([sys.executable, "-m", "omnire_sim.bench", json.dumps(spec)], env=env,
                                   capture_output=True, text=True)
@@ -163,7 +213,8 @@ def main(argv: list[str], plugins) -> int:
         console.print(f"{run}: " + ", ".join(f"{k} {v['fps']:.2f} fps" for k, v in results[-1]["sizes"].items()))
     args.output.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.output / "results.json", json.dumps(results, indent=1) + "\n")
-    table = format_table(results)
+    table = format_table(results) + "\nms per render by stage (means over the views; total: the mean render, PNG not included):\n\n" + \
+        format_profile(results)
     atomic_write_text(args.output / "results.md", table)
     console.print(table)
     return 0
@@ -174,7 +225,7 @@ def _worker(spec_json: str) -> None:
     plugins = PluginSelection.from_dict(spec["plugins"]).load()  # the same plugin set as the command's
     result = measure(Path(spec["run"]), plugins, [tuple(s) for s in spec["sizes"]], spec["views"], spec["warmup"],
                      spec["threads"], Path(spec["save"]) if spec["save"] else None,
-                     Path(spec["compare"]) if spec["compare"] else None, spec["training_path"])
+                     Path(spec["compare"]) if spec["compare"] else None, spec["training_path"], spec["profile"])
     atomic_write_text(spec["result"], json.dumps(result))
 
 

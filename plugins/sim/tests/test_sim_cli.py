@@ -215,12 +215,19 @@ def test_bench_render(demo_run, plugins, tmp_path):
 
     args = [str(demo_run), "--resolutions", "64x36", "--views", "2", "--warmup", "1", "--threads", "1"]
     assert main([*args, "--output", str(tmp_path / "a"), "--save-images", str(tmp_path / "ref")], plugins) == 0
-    assert main([*args, "--output", str(tmp_path / "b"), "--compare-to", str(tmp_path / "ref")], plugins) == 0
+    assert main([*args, "--output", str(tmp_path / "b"), "--compare-to", str(tmp_path / "ref"), "--profile"],
+                plugins) == 0
     result = json.loads((tmp_path / "b" / "results.json").read_text())[0]
     size = result["sizes"]["64x36"]
     assert result["method"] == "streetgs" and result["views"] == 2 and result["peak_mb"] > 0
     assert size["fps"] > 0 and size["max_abs_diff"] == 0.0
     assert "| demo | streetgs |" in (tmp_path / "b" / "results.md").read_text()
+    # where the time went: every stage measured, the render's stages within its mean time
+    stages = size["stages_ms"]
+    assert {"nodes", "raster.rows", "raster.depth_order", "raster.binning", "raster.compositing", "raster.other",
+            "environment", "other", "png"} <= set(stages)
+    assert all(v >= 0 for v in stages.values()) and stages["raster.compositing"] > 0
+    assert sum(v for k, v in stages.items() if k != "png") <= 1.01 * 1000 / size["fps"]
     # the inference path against the training path's pixels (autograd on)
     assert main([*args, "--output", str(tmp_path / "c"), "--training-path", "--save-images", str(tmp_path / "train")],
                 plugins) == 0

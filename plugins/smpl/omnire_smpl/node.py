@@ -310,19 +310,25 @@ class SMPLNode(ActorNode):
         of rigid joint transforms ``A_j x = R_j (x - J_j) + G_j`` (rest joints J, posed G,
         body origin at the box centre), so whatever the pose it stays within
         ``|G_j| + |x - J_j| <= (|J_0| + bones from the root to j) + (|x - J_0| + |J_j - J_0|)``
-        of the box centre; the box pose then turns it about that centre."""
-        J = self.joints[state.ids]  # (P, 24, 3) rest joints
-        root = J[:, 0]
-        chain = [torch.zeros_like(root[:, 0])]  # (P,) per joint: bone lengths from the root
-        for j in range(1, J.shape[1]):
-            p = self.parents[j]
-            chain.append(chain[p] + (J[:, j] - J[:, p]).norm(dim=-1))
-        spread = (J - root[:, None]).norm(dim=-1).amax(dim=1)  # (P,)
+        of the box centre; the box pose then turns it about that centre. Computed for every
+        person again only when the parameters or rest joints change."""
         p = self.gaussian_params
-        row_root = self.joints[self.gaussian_buffers["instance"], 0]  # (N, 3)
-        row_reach = (p["means"].detach() - row_root).norm(dim=-1) + gaussian_reach(p["scales"])
-        rows = segment_max(row_reach, self.instance_offsets())[state.ids]
-        return root.norm(dim=-1) + torch.stack(chain, 1).amax(dim=1) + spread + rows
+
+        def every_instance() -> torch.Tensor:
+            J = self.joints  # (I, 24, 3) rest joints
+            root = J[:, 0]
+            chain = [torch.zeros_like(root[:, 0])]  # (I,) per joint: bone lengths from the root
+            for j in range(1, J.shape[1]):
+                parent = self.parents[j]
+                chain.append(chain[parent] + (J[:, j] - J[:, parent]).norm(dim=-1))
+            spread = (J - root[:, None]).norm(dim=-1).amax(dim=1)  # (I,)
+            row_root = self.joints[self.gaussian_buffers["instance"], 0]  # (N, 3)
+            row_reach = (p["means"].detach() - row_root).norm(dim=-1) + gaussian_reach(p["scales"].detach())
+            rows = segment_max(row_reach, self.instance_offsets())
+            return root.norm(dim=-1) + torch.stack(chain, 1).amax(dim=1) + spread + rows
+
+        sources = (p["means"], p["scales"], self.gaussian_buffers["instance"], self.joints)
+        return self.reach_of_instances.get(sources, every_instance)[state.ids]
 
     def regularization(self, output: NodeOutput) -> dict[str, torch.Tensor]:
         """``pose_smoothness`` around the rendered (recorded) frame, for the people present there."""

@@ -22,6 +22,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <memory>
 #include <vector>
 
 namespace {
@@ -324,27 +325,74 @@ inline void narrow_rect(int32_t* rc, double mx, double my, double ex, double ey,
   if (rc[3] < rc[1]) rc[3] = rc[1];
 }
 
-// Half-extents (ex, ey; pixels) of the region where a Gaussian can reach alpha >= 1/255,
-// from its record as stored (the values the pixel loops evaluate): the bounding box of the
-// ellipse {q <= T}, q = a u^2 + 2 b u v + c v^2 around the mean (conic [a b; b c]), i.e.
-// sqrt(T c / det) and sqrt(T a / det). q <= tq is alpha >= 1/255 (tq = -2 (floor + 0.01),
-// the record's power floor); T exceeds it by 0.01 (half the floor's margin, in power) and by
-// a relative 1e-5 (a + c)^2 / det, which bounds the float rounding of the pixel loops'
-// power: that rounding is at most a few ulp of a u^2 + c v^2, and (a + c)^2 / det bounds
+// The region where a Gaussian can reach alpha >= 1/255, from its record as stored (the
+// values the pixel loops evaluate): the ellipse {q <= T}, q = a u^2 + 2 b u v + c v^2 around
+// the mean (conic [a b; b c]). q <= tq is alpha >= 1/255 (tq = -2 (floor + 0.01), the
+// record's power floor); T exceeds it by 0.01 (half the floor's margin, in power) and by a
+// relative 1e-5 (a + c)^2 / det, which bounds the float rounding of the pixel loops' power:
+// that rounding is at most a few ulp of a u^2 + c v^2, and (a + c)^2 / det bounds
 // (a u^2 + c v^2) / q on the ellipse (it is at least the conic's condition number). So a
-// pixel the extent leaves out fails the alpha test in the loops: skipping it changes
-// nothing. False (ex, ey untouched) for a degenerate stored conic.
+// pixel outside it fails the alpha test in the loops: skipping it changes nothing. False for
+// a degenerate stored conic.
+struct AlphaReach {
+  double mx, my, a, b, c, det, T;
+};
+
 template <typename S>
-inline bool alpha_extent(const S* g, double* ex, double* ey) {
+inline bool alpha_reach(const S* g, AlphaReach* r) {
   const double a = g[2], b = g[3], c = g[4];
   const double det = a * c - b * b;
   if (!(a > 0 && c > 0 && det > 0 && std::isfinite(det))) return false;
   const double tq = -2.0 * (double(g[9]) + 0.01);
   const double T = std::max(0.0, (tq + 0.01) * (1.0 + 1e-5 * (a + c) * (a + c) / det));
   if (!std::isfinite(T)) return false;
-  *ex = std::sqrt(T * c / det);
-  *ey = std::sqrt(T * a / det);
+  *r = {double(g[0]), double(g[1]), a, b, c, det, T};
   return true;
+}
+
+// Half-extents (ex, ey; pixels) of alpha_reach's ellipse: its bounding box around the mean,
+// sqrt(T c / det) and sqrt(T a / det). False (ex, ey untouched) for a degenerate stored conic.
+template <typename S>
+inline bool alpha_extent(const S* g, double* ex, double* ey) {
+  AlphaReach r;
+  if (!alpha_reach(g, &r)) return false;
+  *ex = std::sqrt(r.T * r.c / r.det);
+  *ey = std::sqrt(r.T * r.a / r.det);
+  return true;
+}
+
+// Whether alpha_reach's ellipse holds a pixel centre of the tile (tx, ty) of a W x H image:
+// the least q over the rectangle of its pixel centres is at most T. q is convex, so that
+// least value is 0 when the rectangle holds the mean, else on one of its edges, where q is
+// a parabola whose vertex, clamped to the edge, is the edge's least. A tile it fails has
+// no pixel the Gaussian can paint (alpha_reach), so leaving it out of that tile's list
+// changes nothing; about a third of the pairs a trained scene's ellipse bounding boxes give
+// (thin, tilted Gaussians) are such.
+// ``bc`` = b / c and ``ba`` = b / a (the edges' vertices).
+inline bool reaches_tile(const AlphaReach& r, double bc, double ba, int tx, int ty, int W, int H) {
+  const double x0 = tx * TILE + 0.5 - r.mx, x1 = std::min(tx * TILE + TILE, W) - 0.5 - r.mx;
+  const double y0 = ty * TILE + 0.5 - r.my, y1 = std::min(ty * TILE + TILE, H) - 0.5 - r.my;
+  if (x0 <= 0.0 && 0.0 <= x1 && y0 <= 0.0 && 0.0 <= y1) return true;
+  auto q = [&](double u, double v) { return r.a * u * u + 2.0 * r.b * u * v + r.c * v * v; };
+  const double least = std::min(std::min(q(x0, std::clamp(-bc * x0, y0, y1)), q(x1, std::clamp(-bc * x1, y0, y1))),
+                                std::min(q(std::clamp(-ba * y0, x0, x1), y0), q(std::clamp(-ba * y1, x0, x1), y1)));
+  return least <= r.T;
+}
+
+// The tiles of a Gaussian's rect ``rc`` (x0, y0, x1, y1) its alpha ellipse reaches
+// (reaches_tile), as bits in row-major order over the rect; every bit for a single tile or a
+// degenerate stored conic. Rects of more than 64 tiles are not tested (all tiles kept).
+constexpr int MAX_TESTED_TILES = 64;
+template <typename S>
+inline uint64_t reached_tiles(const S* g, const int32_t* rc, int W, int H) {
+  const int w = rc[2] - rc[0], n = w * (rc[3] - rc[1]);
+  AlphaReach r;
+  if (n <= 1 || n > MAX_TESTED_TILES || !alpha_reach(g, &r)) return ~uint64_t(0);
+  const double bc = r.b / r.c, ba = r.b / r.a;
+  uint64_t bits = 0;
+  for (int k = 0; k < n; ++k)
+    if (reaches_tile(r, bc, ba, rc[0] + k % w, rc[1] + k / w, W, H)) bits |= uint64_t(1) << k;
+  return bits;
 }
 
 // Tile rect [x0, y0, x1, y1) of a projected Gaussian's 3-sigma radius (the "drawn" test:
@@ -407,21 +455,48 @@ void project_all(int64_t N, const S* means, const S* quats, const S* scales, con
 }
 
 // Stable LSD radix sort of (float key >= 0, index) by key: positive IEEE floats order like
-// their bit patterns. Ties keep index order, so the result is deterministic.
-void sort_by_depth(std::vector<uint64_t>& items) {
+// their bit patterns. Ties keep their order in ``items``, so the result is deterministic.
+// Each pass splits the items into nthreads consecutive parts: every part counts its digits,
+// and part p's items of digit d go after those of digit d of parts before p (stable, and
+// the same result for any number of parts). A pass whose digit is the same for every item
+// moves nothing and is skipped.
+void sort_by_depth(std::vector<uint64_t>& items, int nthreads) {
+  const int64_t M = int64_t(items.size());
+  const int P = int(std::max<int64_t>(1, std::min<int64_t>(nthreads, M / 4096)));
   std::vector<uint64_t> tmp(items.size());
+  std::vector<int64_t> cnt(size_t(P) * 256);
   for (int pass = 0; pass < 4; ++pass) {
     const int shift = 32 + 8 * pass;
-    size_t cnt[257] = {0};
-    for (uint64_t it : items) ++cnt[((it >> shift) & 0xFF) + 1];
-    for (int b = 0; b < 256; ++b) cnt[b + 1] += cnt[b];
-    for (uint64_t it : items) tmp[cnt[(it >> shift) & 0xFF]++] = it;
+    std::fill(cnt.begin(), cnt.end(), 0);
+#pragma omp parallel for schedule(static, 1) num_threads(P)
+    for (int p = 0; p < P; ++p) {
+      int64_t* c = cnt.data() + 256 * p;
+      for (int64_t q = M * p / P; q < M * (p + 1) / P; ++q) ++c[(items[q] >> shift) & 0xFF];
+    }
+    int64_t at = 0;
+    bool one_digit = false;
+    for (int d = 0; d < 256; ++d) {
+      int64_t in_digit = 0;
+      for (int p = 0; p < P; ++p) {
+        const int64_t n = cnt[256 * p + d];
+        cnt[256 * p + d] = at;
+        at += n;
+        in_digit += n;
+      }
+      one_digit = one_digit || in_digit == M;
+    }
+    if (one_digit) continue;
+#pragma omp parallel for schedule(static, 1) num_threads(P)
+    for (int p = 0; p < P; ++p) {
+      int64_t* c = cnt.data() + 256 * p;
+      for (int64_t q = M * p / P; q < M * (p + 1) / P; ++q) tmp[c[(items[q] >> shift) & 0xFF]++] = items[q];
+    }
     items.swap(tmp);
   }
 }
 
 // (depth bits, index) of the drawn Gaussians (radii > 0), nearest first.
-std::vector<uint64_t> depth_order(int64_t N, const float* depth_f, const int32_t* radii) {
+std::vector<uint64_t> depth_order(int64_t N, const float* depth_f, const int32_t* radii, int nthreads) {
   std::vector<uint64_t> order;
   order.reserve(N);
   for (int64_t i = 0; i < N; ++i) {
@@ -431,14 +506,17 @@ std::vector<uint64_t> depth_order(int64_t N, const float* depth_f, const int32_t
     std::memcpy(&bits, &d, 4);
     order.push_back((uint64_t(bits) << 32) | uint64_t(uint32_t(i)));
   }
-  sort_by_depth(order);
+  sort_by_depth(order, nthreads);
   return order;
 }
 
-// Tile lists of the Gaussians in ``order`` (low 32 bits: index), kept in that order.
-// offsets: (ntiles+1,) int64; ids: (M,) int32.
-std::pair<at::Tensor, at::Tensor> bin_ordered(const std::vector<uint64_t>& order, const int32_t* rect,
-                                              int tilesX, int tilesY, int nthreads) {
+// Tile lists of the Gaussians in ``order`` (low 32 bits: index, below ``n_records``, of their
+// record in ``rec`` and rect in ``rect``), kept in that order: each in the tiles of its rect
+// that its alpha ellipse reaches (reached_tiles). offsets: (ntiles+1,) int64; ids: (M,) int32.
+template <typename S>
+std::pair<at::Tensor, at::Tensor> bin_ordered(const std::vector<uint64_t>& order, const S* rec, const int32_t* rect,
+                                              int64_t n_records, int W, int H, int nthreads) {
+  const int tilesX = (W + TILE - 1) / TILE, tilesY = (H + TILE - 1) / TILE;
   const int64_t ntiles = int64_t(tilesX) * tilesY;
   auto offsets = at::zeros({ntiles + 1}, at::kLong);
   int64_t* off = offsets.data_ptr<int64_t>();
@@ -453,12 +531,14 @@ std::pair<at::Tensor, at::Tensor> bin_ordered(const std::vector<uint64_t>& order
   const int nparts = std::max(1, nthreads);
   const int64_t M = int64_t(order.size());
   std::vector<std::vector<int32_t>> part_band(size_t(nparts) * nbands);  // [part][band] -> indices in order
+  std::vector<uint64_t> reached(n_records);  // reached_tiles of every Gaussian in the list
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int t = 0; t < nparts; ++t) {
     for (int64_t q = M * t / nparts; q < M * (t + 1) / nparts; ++q) {
       const int32_t i = int32_t(order[q] & 0xFFFFFFFFu);
       const int32_t* rc = rect + 4 * int64_t(i);
       if (rc[1] >= rc[3] || rc[0] >= rc[2]) continue;
+      reached[i] = reached_tiles(rec + REC * int64_t(i), rc, W, H);
       for (int b = band_of_row[rc[1]]; b <= band_of_row[rc[3] - 1]; ++b) part_band[size_t(t) * nbands + b].push_back(i);
     }
   }
@@ -467,16 +547,22 @@ std::pair<at::Tensor, at::Tensor> bin_ordered(const std::vector<uint64_t>& order
     for (int t = 0; t < nparts; ++t)
       for (int32_t i : part_band[size_t(t) * nbands + b]) fn(i);
   };
+  // every tile of band rows [r0, r1) that Gaussian i's list entry goes to, in order
+  auto for_tiles = [&](int32_t i, int r0, int r1, auto&& fn) {
+    const int32_t* rc = rect + 4 * int64_t(i);
+    const int ya = std::max(rc[1], r0), yb = std::min(rc[3], r1), w = rc[2] - rc[0];
+    const uint64_t bits = reached[i];
+    for (int ty = ya; ty < yb; ++ty)
+      for (int tx = rc[0]; tx < rc[2]; ++tx) {
+        const int k = (ty - rc[1]) * w + (tx - rc[0]);
+        if (k >= MAX_TESTED_TILES || (bits >> k) & 1) fn(int64_t(ty) * tilesX + tx);
+      }
+  };
   std::vector<int64_t> counts(ntiles, 0);
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
   for (int b = 0; b < nbands; ++b) {
     auto [r0, r1] = band_of(b);
-    for_band(b, [&](int32_t i) {
-      const int32_t* rc = rect + 4 * int64_t(i);
-      const int ya = std::max(rc[1], r0), yb = std::min(rc[3], r1);
-      for (int ty = ya; ty < yb; ++ty)
-        for (int tx = rc[0]; tx < rc[2]; ++tx) ++counts[int64_t(ty) * tilesX + tx];
-    });
+    for_band(b, [&](int32_t i) { for_tiles(i, r0, r1, [&](int64_t t) { ++counts[t]; }); });
   }
   off[0] = 0;
   for (int64_t t = 0; t < ntiles; ++t) off[t + 1] = off[t] + counts[t];
@@ -485,22 +571,11 @@ std::pair<at::Tensor, at::Tensor> bin_ordered(const std::vector<uint64_t>& order
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
   for (int b = 0; b < nbands; ++b) {
     auto [r0, r1] = band_of(b);
-    std::vector<int64_t> cur(off + int64_t(r0) * tilesX, off + int64_t(r1) * tilesX);
-    for_band(b, [&](int32_t i) {
-      const int32_t* rc = rect + 4 * int64_t(i);
-      const int ya = std::max(rc[1], r0), yb = std::min(rc[3], r1);
-      for (int ty = ya; ty < yb; ++ty)
-        for (int tx = rc[0]; tx < rc[2]; ++tx)
-          idp[cur[int64_t(ty - r0) * tilesX + tx]++] = i;
-    });
+    const int64_t first = int64_t(r0) * tilesX;
+    std::vector<int64_t> cur(off + first, off + int64_t(r1) * tilesX);
+    for_band(b, [&](int32_t i) { for_tiles(i, r0, r1, [&](int64_t t) { idp[cur[t - first]++] = i; }); });
   }
   return {offsets, ids};
-}
-
-// Tile lists in front-to-back order.
-std::pair<at::Tensor, at::Tensor> bin_gaussians(int64_t N, const float* depth_f, const int32_t* radii,
-                                                const int32_t* rect, int tilesX, int tilesY, int nthreads) {
-  return bin_ordered(depth_order(N, depth_f, radii), rect, tilesX, tilesY, nthreads);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -910,8 +985,9 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& means, const at::Tensor& 
   std::vector<float> depth_f(N);
   const S* r = rec.data_ptr<S>();
   for (int64_t i = 0; i < N; ++i) depth_f[i] = float(r[REC * i + 6]);
-  auto [offsets, ids] = bin_gaussians(N, depth_f.data(), radii.data_ptr<int32_t>(), rect.data_ptr<int32_t>(),
-                                      tilesX, tilesY, nthreads);
+  at::Tensor offsets, ids;
+  std::tie(offsets, ids) = bin_ordered(depth_order(N, depth_f.data(), radii.data_ptr<int32_t>(), nthreads), r,
+                                       rect.data_ptr<int32_t>(), N, W, H, nthreads);
   auto acc = at::empty({H, W, D}, opts);
   auto dn = at::empty({H, W}, opts);
   auto aa = at::empty({H, W}, opts);
@@ -979,46 +1055,6 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means, const at::Tensor&
 }
 
 // ---------------------------------------------------------------------------------------
-// Inference forward (float32) from Gaussians in groups (one per scene-graph node output, so
-// nothing is concatenated): activated scales and opacities (by the caller, with torch's
-// exp / sigmoid, so alphas are bit-identical to the training path's), quats as given
-// (normalised in projection), SH coefficients whose colour from the camera centre is
-// evaluated only for the Gaussians that are drawn; Gaussians that cannot reach the image are
-// rejected before their covariance is built; then the same binning and compositing as
-// forward_impl. Nothing is kept for a backward pass. Colours equal the training path's (torch
-// SH) up to float rounding of the view-direction normalisation.
-constexpr float SH_C0 = 0.28209479177387814f, SH_C1 = 0.4886025119029199f;
-constexpr float SH_C2[5] = {1.0925484305920792f, -1.0925484305920792f, 0.31539156525252005f, -1.0925484305920792f,
-                            0.5462742152960396f};
-constexpr float SH_C3[7] = {-0.5900435899266435f, 2.890611442640554f, -0.4570457994644658f, 0.3731763325901154f,
-                            -0.4570457994644658f, 1.445305721320277f, -0.5900435899266435f};
-
-// RGB of one Gaussian: sh0 (3,), shN (K-1, 3) row-major, bands up to ``degree``, unit view
-// direction d; same terms in the same order as omnire.gaussians.eval_sh, then +0.5, >= 0.
-inline void sh_color(const float* sh0, const float* shN, int degree, const float d[3], float* out) {
-  const float x = d[0], y = d[1], z = d[2];
-  for (int c = 0; c < 3; ++c) {
-    float v = SH_C0 * sh0[c];
-    if (degree >= 1) {
-      v = v - SH_C1 * y * shN[0 * 3 + c] + SH_C1 * z * shN[1 * 3 + c] - SH_C1 * x * shN[2 * 3 + c];
-    }
-    if (degree >= 2) {
-      const float xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
-      v = v + SH_C2[0] * xy * shN[3 * 3 + c] + SH_C2[1] * yz * shN[4 * 3 + c] +
-          SH_C2[2] * (2 * zz - xx - yy) * shN[5 * 3 + c] + SH_C2[3] * xz * shN[6 * 3 + c] +
-          SH_C2[4] * (xx - yy) * shN[7 * 3 + c];
-      if (degree >= 3) {
-        v = v + SH_C3[0] * y * (3 * xx - yy) * shN[8 * 3 + c] + SH_C3[1] * xy * z * shN[9 * 3 + c] +
-            SH_C3[2] * y * (4 * zz - xx - yy) * shN[10 * 3 + c] +
-            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * shN[11 * 3 + c] +
-            SH_C3[4] * x * (4 * zz - xx - yy) * shN[12 * 3 + c] + SH_C3[5] * z * (xx - yy) * shN[13 * 3 + c] +
-            SH_C3[6] * x * (xx - 3 * yy) * shN[14 * 3 + c];
-      }
-    }
-    out[c] = std::max(v + 0.5f, 0.0f);
-  }
-}
-
 // True when a Gaussian (world mean, largest scale) cannot reach the image, decided
 // without its covariance: out of the depth range, or its projected centre farther outside
 // the image than the 3-sigma radius project_all would give it. That radius is
@@ -1026,8 +1062,11 @@ inline void sh_color(const float* sh0, const float* shN, int degree, const float
 // Jacobian, |R_view| = 1), plus 4 px (project_all's radius exceeds 3 sqrt(lambda_max) by up
 // to 1.7 px through its eigenvalue floor and 1 px through ceil); such Gaussians get an empty
 // tile rect in project_all, so skipping them changes nothing.
+// Decided from the largest log-scale: exp is increasing, and it is taken only for rows in
+// the depth range whose centre lies more than 4 px outside the image (the others are kept
+// without it). The radius test r < out + 4 is made squared (no square root).
 template <typename S>
-inline bool off_screen(const S* mean, double max_scale, const Camera& cam, double near, double far,
+inline bool off_screen(const S* mean, S max_log_scale, const Camera& cam, double near, double far,
                        double eps2d) {
   const double m[3] = {double(mean[0]), double(mean[1]), double(mean[2])};
   double t[3];
@@ -1035,111 +1074,26 @@ inline bool off_screen(const S* mean, double max_scale, const Camera& cam, doubl
     t[i] = cam.R[i * 3] * m[0] + cam.R[i * 3 + 1] * m[1] + cam.R[i * 3 + 2] * m[2] + cam.t[i];
   const double z = t[2];
   if (!(z > near && z < far && z > 0.0)) return true;
-  const double mx = cam.fx * t[0] / z + cam.cx, my = cam.fy * t[1] / z + cam.cy;
+  const double iz = 1.0 / z, x = t[0] * iz, y = t[1] * iz;
+  const double mx = cam.fx * x + cam.cx, my = cam.fy * y + cam.cy;
   if (!std::isfinite(mx) || !std::isfinite(my)) return true;
-  const double u = std::min(cam.lim_xp, std::max(-cam.lim_xn, t[0] / z));
-  const double v = std::min(cam.lim_yp, std::max(-cam.lim_yn, t[1] / z));
-  const double j2 = (cam.fx * cam.fx * (1.0 + u * u) + cam.fy * cam.fy * (1.0 + v * v)) / (z * z);
-  const double smax = double(max_scale);
-  const double r = 3.0 * std::sqrt(j2 * smax * smax + eps2d) + 4.0;
-  if (!std::isfinite(r)) return false;  // let the full projection decide
-  return mx + r < 0.0 || my + r < 0.0 || mx - r > cam.W || my - r > cam.H;
-}
-
-std::vector<at::Tensor> forward_gaussians_impl(const std::vector<at::Tensor>& means, const std::vector<at::Tensor>& quats,
-                                               const std::vector<at::Tensor>& scales,
-                                               const std::vector<at::Tensor>& opacities, const std::vector<at::Tensor>& sh0,
-                                               const std::vector<at::Tensor>& shN, int sh_degree, const float center[3],
-                                               const Camera& cam, double near, double far, double eps2d, bool cull,
-                                               int nthreads) {
-  const size_t G = means.size();
-  std::vector<int64_t> start(G + 1, 0);
-  for (size_t g = 0; g < G; ++g) start[g + 1] = start[g] + means[g].size(0);
-  const int64_t N = start[G];
-  const int W = cam.W, H = cam.H;
-  const int tilesX = (W + TILE - 1) / TILE, tilesY = (H + TILE - 1) / TILE;
-  auto opts = at::TensorOptions().dtype(at::kFloat);
-  auto rec = at::empty({N, REC}, opts);
-  auto colors = at::empty({N, 3}, opts);
-  auto means2d = at::empty({N, 2}, opts);
-  auto radii = at::empty({N}, at::kInt);
-  auto rect = at::empty({N, 4}, at::kInt);
-  float* recp = rec.data_ptr<float>();
-  float* colp = colors.data_ptr<float>();
-  float* m2p = means2d.data_ptr<float>();
-  int32_t* radp = radii.data_ptr<int32_t>();
-  int32_t* rectp = rect.data_ptr<int32_t>();
-  std::vector<float> depth_f(N);
-  int64_t first_bad = -1;  // a non-finite parameter refuses the render (caller raises)
-  int64_t rejected = 0;     // Gaussians culled before their covariance (cull = true)
-  for (size_t g = 0; g < G; ++g) {
-    const int64_t n = means[g].size(0), off = start[g];
-    const int K1 = int(shN[g].size(1));  // extra SH bases of this group: (deg + 1)^2 - 1
-    int deg = 0;
-    while ((deg + 1) * (deg + 1) - 1 < K1) ++deg;
-    deg = std::min(deg, sh_degree);
-    const float *mp = means[g].data_ptr<float>(), *qp = quats[g].data_ptr<float>();
-    const float *sp = scales[g].data_ptr<float>(), *op = opacities[g].data_ptr<float>();
-    const float *c0p = sh0[g].data_ptr<float>(), *cNp = shN[g].data_ptr<float>();
-    int64_t bad = std::numeric_limits<int64_t>::max();
-    // Dynamic chunks: a culled row costs a few ns, a drawn one a projection and its SH; each
-    // row writes only its own outputs, so the schedule changes no result.
-#pragma omp parallel for schedule(dynamic, 1024) num_threads(nthreads) reduction(min : bad) reduction(+ : rejected)
-    for (int64_t i = 0; i < n; ++i) {
-      const int64_t k = off + i;
-      bool finite = std::isfinite(op[i]);
-      for (int j = 0; j < 3; ++j) finite = finite && std::isfinite(mp[3 * i + j]) && std::isfinite(sp[3 * i + j]);
-      for (int j = 0; j < 4; ++j) finite = finite && std::isfinite(qp[4 * i + j]);
-      if (!finite) bad = std::min(bad, k);
-      // records and tile rects are read only where radii > 0: left unwritten elsewhere
-      radp[k] = 0;
-      float* g9 = recp + REC * k;
-      m2p[2 * k] = m2p[2 * k + 1] = 0.0f;
-      depth_f[k] = 0.0f;
-      if (cull && finite &&
-          off_screen(mp + 3 * i, std::max({sp[3 * i], sp[3 * i + 1], sp[3 * i + 2]}), cam, near, far, eps2d)) {
-        ++rejected;
-        continue;
-      }
-      const float o = op[i];
-      Proj p;
-      project_one(mp + 3 * i, qp + 4 * i, sp + 3 * i, cam, near, far, eps2d, p);
-      m2p[2 * k] = p.in_depth ? float(p.m2d[0]) : 0.0f;
-      m2p[2 * k + 1] = p.in_depth ? float(p.m2d[1]) : 0.0f;
-      if (!p.ok) continue;
-      double r;
-      if (!radius_rect(p, tilesX, tilesY, &r, rectp + 4 * k)) continue;
-      radp[k] = int32_t(r);
-      write_record(p, double(o), tilesX, tilesY, g9, rectp + 4 * k);
-      depth_f[k] = g9[6];
-      // view direction from the camera centre, normalised as omnire.gaussians.Gaussians.colors
-      float d[3] = {mp[3 * i] - center[0], mp[3 * i + 1] - center[1], mp[3 * i + 2] - center[2]};
-      const float nrm = std::max(std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]), 1e-8f);
-      for (int j = 0; j < 3; ++j) d[j] = d[j] / nrm;
-      sh_color(c0p + 3 * i, cNp + int64_t(3) * K1 * i, deg, d, colp + 3 * k);
-      if (!(std::isfinite(colp[3 * k]) && std::isfinite(colp[3 * k + 1]) && std::isfinite(colp[3 * k + 2])))
-        bad = std::min(bad, k);
-    }
-    if (bad != std::numeric_limits<int64_t>::max() && first_bad < 0) first_bad = bad;
-  }
-  if (first_bad >= 0) {  // nothing rendered: the caller names the row
-    auto e = at::zeros({0}, opts);
-    return {e, e, e, at::zeros({0}, at::kInt), e, at::full({1}, first_bad, at::kLong), at::zeros({1}, at::kLong)};
-  }
-  auto [offsets, ids] = bin_gaussians(N, depth_f.data(), radp, rectp, tilesX, tilesY, nthreads);
-  auto acc = at::empty({H, W, 3}, opts);
-  auto dn = at::empty({H, W}, opts);
-  auto aa = at::empty({H, W}, opts);
-  render_forward<float>(cam, 3, tilesX, tilesY, recp, colp, offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
-                        acc.data_ptr<float>(), dn.data_ptr<float>(), aa.data_ptr<float>(), nthreads);
-  return {acc, dn, aa, radii, means2d, at::full({1}, -1, at::kLong), at::full({1}, N - rejected, at::kLong)};
+  // how far the centre lies outside the image, beyond the 4 px margin
+  const double out = std::max(std::max(-mx, mx - cam.W), std::max(-my, my - cam.H)) - 4.0;
+  if (!(out > 0.0)) return false;
+  const double u = std::min(cam.lim_xp, std::max(-cam.lim_xn, x));
+  const double v = std::min(cam.lim_yp, std::max(-cam.lim_yn, y));
+  const double j2 = (cam.fx * cam.fx * (1.0 + u * u) + cam.fy * cam.fy * (1.0 + v * v)) * (iz * iz);
+  const double smax = double(std::exp(max_log_scale));
+  const double r2 = 9.0 * (j2 * smax * smax + eps2d);  // (r - 4)^2
+  if (!std::isfinite(r2)) return false;  // let the full projection decide
+  return r2 < out * out;
 }
 
 // ---------------------------------------------------------------------------------------
-// Training path from raw Gaussians in groups (autograd: rasterizer.py, _RasterizeGaussiansFn).
-// One call does what the torch side used to do around the rasterizer: activations (exp of
+// Raw Gaussians in groups, for training (autograd: rasterizer.py, _RasterizeGaussiansFn) and
+// inference (its forward alone: CpuRasterizer.rasterize_gaussians). One call does what the torch side used to do around the rasterizer: activations (exp of
 // log-scales, sigmoid of opacity logits), SH colour seen from the camera centre, rejection of
-// Gaussians that cannot reach the image (as the inference path), projection, binning and
+// Gaussians that cannot reach the image (off_screen), projection, binning and
 // compositing; nothing is concatenated. Only the M drawn Gaussians get a record (compacted,
 // ``gidx`` maps them back), so the backward's per-thread gradient buffers are M x K instead of
 // N x K. The backward goes from the pixel gradients to the raw parameters of every group:
@@ -1169,6 +1123,32 @@ inline void sh_basis(int degree, const S d[3], S b[16]) {
   b[9] = S(SHD_C3[0]) * y * (3 * xx - yy); b[10] = S(SHD_C3[1]) * xy * z; b[11] = S(SHD_C3[2]) * y * (4 * zz - xx - yy);
   b[12] = S(SHD_C3[3]) * z * (2 * zz - 3 * xx - 3 * yy); b[13] = S(SHD_C3[4]) * x * (4 * zz - xx - yy);
   b[14] = S(SHD_C3[5]) * z * (xx - yy); b[15] = S(SHD_C3[6]) * x * (xx - 3 * yy);
+}
+
+// RGB of one Gaussian: colour_c = sum_j b_j coeff_jc over the first ``nb`` bases (j = 0 the DC
+// term ``sh0`` (3,), then ``shN`` ((K - 1), 3) row-major), summed in j order, then + 0.5 and
+// at least 0 (as Gaussians.colors).
+template <typename S>
+inline void sh_colour(const S* sh0, const S* shN, const S b[16], int nb, S col[3]) {
+  for (int c = 0; c < 3; ++c) {
+    S v = b[0] * sh0[c];
+    for (int j = 1; j < nb; ++j) v += b[j] * shN[(j - 1) * 3 + c];
+    col[c] = std::max(v + S(0.5), S(0));
+  }
+}
+
+// float: the three channels at once in the lanes of an SSE register (the same products and
+// sums per channel, so the same numbers); a NaN stays a NaN (the caller refuses the row).
+inline void sh_colour(const float* sh0, const float* shN, const float b[16], int nb, float col[3]) {
+  const __m128i rgb = _mm_setr_epi32(-1, -1, -1, 0);  // reads three floats, never past the row
+  __m128 v = _mm_mul_ps(_mm_set1_ps(b[0]), _mm_maskload_ps(sh0, rgb));
+  for (int j = 1; j < nb; ++j)
+    v = _mm_add_ps(v, _mm_mul_ps(_mm_set1_ps(b[j]), _mm_maskload_ps(shN + (j - 1) * 3, rgb)));
+  // max(0, x) returns x when x is NaN, and -0 for -0, as std::max(x, 0) does
+  v = _mm_max_ps(_mm_setzero_ps(), _mm_add_ps(v, _mm_set1_ps(0.5f)));
+  alignas(16) float out[4];
+  _mm_store_ps(out, v);
+  col[0] = out[0], col[1] = out[1], col[2] = out[2];
 }
 
 // Rows drawn moved by x -> R x + t (a camera-pose correction applied to the Gaussians,
@@ -1339,35 +1319,51 @@ std::vector<RawGroup<S>> raw_groups(const std::vector<at::Tensor>& means, const 
   return gs;
 }
 
+// A drawn row's scratch as the per-row loop writes it: record, colour, tile rect (tile
+// indices, checked below 65536) and row, in one 64-byte line for float (the depth-order
+// gather reads one line per Gaussian, in an order scattered over all of them).
+template <typename S>
+struct alignas(64) DrawnSlot {
+  S rec[REC];
+  S col[3];
+  uint16_t rect[4];
+  int32_t row;
+};
+static_assert(sizeof(DrawnSlot<float>) == 64, "one cache line per drawn float row");
+
 template <typename S>
 std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& groups, int64_t N, const double center[3],
                                            const std::vector<Segment>& segs, const Camera& cam, double near, double far,
                                            double eps2d, bool cull, at::ScalarType st, int nthreads) {
   const int W = cam.W, H = cam.H;
   const int tilesX = (W + TILE - 1) / TILE, tilesY = (H + TILE - 1) / TILE;
+  TORCH_CHECK(tilesX < 65536 && tilesY < 65536, "image of ", W, " x ", H, " pixels: at most 65535 tiles per side");
+  TORCH_CHECK(N < (int64_t(1) << 31), N, " Gaussians: at most 2^31 - 1");
   auto opts = at::TensorOptions().dtype(st);
   // Per-Gaussian scratch, packed per chunk: the j-th drawn row of a chunk whose first row is
-  // k0 writes slot k0 + j (``row_of`` says which row), so the depth-order gather below reads
-  // a few dense runs instead of rows scattered over all N.
-  auto rec_all = at::empty({N, REC}, opts);
-  auto col_all = at::empty({N, 3}, opts);
-  auto rect_all = at::empty({N, 4}, at::kInt);
-  auto depth_t = at::empty({N}, at::kFloat);
-  auto row_of_t = at::empty({N}, at::kLong);
-  float* depth_all = depth_t.data_ptr<float>();
-  int64_t* row_of = row_of_t.data_ptr<int64_t>();
+  // k0 writes slot k0 + j (its row in the slot), so the depth-order gather below reads a few
+  // dense runs instead of rows scattered over all N. Left uninitialised: only drawn slots are read.
+  std::unique_ptr<DrawnSlot<S>[]> slots(new DrawnSlot<S>[size_t(std::max<int64_t>(N, 1))]);
   auto radii = at::empty({N}, at::kInt);
   auto means2d = at::empty({N, 2}, opts);
-  S* recp = rec_all.data_ptr<S>();
-  S* colp = col_all.data_ptr<S>();
-  int32_t* rectp = rect_all.data_ptr<int32_t>();
   int32_t* radp = radii.data_ptr<int32_t>();
   S* m2p = means2d.data_ptr<S>();
   const std::vector<Chunk> chunks = make_chunks(segs);
   std::vector<int64_t> drawn(chunks.size(), 0);  // drawn rows per chunk
   int64_t bad = std::numeric_limits<int64_t>::max();
   int64_t rejected = 0;
-  // Dynamic chunks of rows, as in forward_gaussians_impl (no result depends on them).
+  // wall seconds of the stages (returned for profiles): rows (culling, activation,
+  // projection, SH colour), depth order (sort and gather), tile binning, compositing
+  auto stages = at::zeros({4}, at::kDouble);
+  double* stage_s = stages.data_ptr<double>();
+  double clock = omp_get_wtime();
+  auto lap = [&](int k) {
+    const double now = omp_get_wtime();
+    stage_s[k] = now - clock;
+    clock = now;
+  };
+  // Dynamic chunks: a culled row costs a few ns, a drawn one its projection and SH colour;
+  // each row writes only its own outputs, so the schedule changes no result.
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads) reduction(min : bad) reduction(+ : rejected)
   for (size_t ci = 0; ci < chunks.size(); ++ci) {
     const Segment& sg = segs[chunks[ci].seg];
@@ -1382,26 +1378,22 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       if (!p.ok) return;
       const S o = sigmoid_of(G.opac[i]);
       double r;
-      const int64_t slot = k0 + n_drawn;  // written only if the row is drawn
-      int32_t* rc = rectp + 4 * slot;
+      DrawnSlot<S>& slot = slots[k0 + n_drawn];  // kept only if the row is drawn
+      int32_t rc[4];
       if (!radius_rect(p, tilesX, tilesY, &r, rc) || !(double(o) > 0.0)) return;
       S d[3], b[16];
       view_dir(mp, center, sg.mv, d);
       sh_basis(G.deg, d, b);
-      S* col = colp + 3 * slot;
-      const int nb = (G.deg + 1) * (G.deg + 1);
-      bool col_ok = true;
-      for (int c = 0; c < 3; ++c) {
-        S v = b[0] * G.sh0[3 * i + c];
-        for (int j = 1; j < nb; ++j) v += b[j] * G.shN[(int64_t(G.K1) * i + (j - 1)) * 3 + c];
-        col[c] = std::max(v + S(0.5), S(0));
-        col_ok = col_ok && std::isfinite(double(col[c]));
+      S* col = slot.col;
+      sh_colour(G.sh0 + 3 * i, G.shN + int64_t(G.K1) * 3 * i, b, (G.deg + 1) * (G.deg + 1), col);
+      if (!(std::isfinite(double(col[0])) && std::isfinite(double(col[1])) && std::isfinite(double(col[2])))) {
+        bad = std::min(bad, k);
+        return;
       }
-      if (!col_ok) { bad = std::min(bad, k); return; }
       radp[k] = int32_t(r);
-      write_record(p, double(o), tilesX, tilesY, recp + REC * slot, rc);
-      depth_all[slot] = float(recp[REC * slot + 6]);
-      row_of[slot] = k;
+      write_record(p, double(o), tilesX, tilesY, slot.rec, rc);
+      for (int j = 0; j < 4; ++j) slot.rect[j] = uint16_t(rc[j]);
+      slot.row = int32_t(k);
       ++n_drawn;
     };
     // Rows past the culling wait in fours: their projections share the lanes of D4
@@ -1424,14 +1416,15 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       radp[k] = 0;
       m2p[2 * k] = m2p[2 * k + 1] = S(0);
       // every value finite <=> their sum in double is (14 floats cannot overflow a double;
-      // an infinity or NaN makes the sum infinite or NaN)
-      double sum = double(G.opac[i]);
-      for (int j = 0; j < 3; ++j) sum += double(mp[j]) + double(sp[j]) + double(G.sh0[3 * i + j]);
-      for (int j = 0; j < 4; ++j) sum += double(qp[j]);
+      // an infinity or NaN makes the sum infinite or NaN); four independent partial sums
+      const S* c0 = G.sh0 + 3 * i;
+      const double sum = ((double(G.opac[i]) + double(mp[0])) + (double(mp[1]) + double(mp[2]))) +
+                         ((double(sp[0]) + double(sp[1])) + (double(sp[2]) + double(c0[0]))) +
+                         ((double(c0[1]) + double(c0[2])) + (double(qp[0]) + double(qp[1]))) +
+                         (double(qp[2]) + double(qp[3]));
       if (!std::isfinite(sum)) { bad = std::min(bad, k); continue; }
-      // exp is increasing: the largest scale is the exp of the largest log-scale, and the
-      // three scales are only needed for Gaussians that pass the culling
-      if (cull && off_screen(mp, double(std::exp(std::max({sp[0], sp[1], sp[2]}))), sg.cam, near, far, eps2d)) {
+      // the three scales are only needed for Gaussians that pass the culling
+      if (cull && off_screen(mp, std::max({sp[0], sp[1], sp[2]}), sg.cam, near, far, eps2d)) {
         ++rejected;
         continue;
       }
@@ -1449,8 +1442,9 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
   if (first_bad >= 0) {
     auto e = at::zeros({0}, opts);
     return {e, e, e, at::zeros({0}, at::kInt), e, e, e, at::zeros({0}, at::kLong), at::zeros({1}, at::kLong),
-            at::zeros({0}, at::kInt), at::full({1}, first_bad, at::kLong), at::zeros({1}, at::kLong)};
+            at::zeros({0}, at::kInt), at::full({1}, first_bad, at::kLong), at::zeros({1}, at::kLong), stages};
   }
+  lap(0);
   // Compact the drawn Gaussians in front-to-back order (ties by row, so deterministic: slots
   // increase with rows): each tile list then walks the records, and the backward its
   // gradient rows, in increasing address order instead of jumping across the whole array.
@@ -1462,12 +1456,13 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
     for (size_t ci = 0; ci < chunks.size(); ++ci) {
       const int64_t k0 = groups[segs[chunks[ci].seg].group].start + chunks[ci].begin;
       for (int64_t slot = k0; slot < k0 + drawn[ci]; ++slot) {
+        const float depth = float(slots[slot].rec[6]);
         uint32_t bits;
-        std::memcpy(&bits, &depth_all[slot], 4);
+        std::memcpy(&bits, &depth, 4);
         order.push_back((uint64_t(bits) << 32) | uint64_t(uint32_t(slot)));
       }
     }
-    sort_by_depth(order);
+    sort_by_depth(order, nthreads);
   }
   const int64_t M = int64_t(order.size());
   auto gidx = at::empty({M}, at::kLong);
@@ -1479,27 +1474,30 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
   S* cc = col.data_ptr<S>();
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int64_t m = 0; m < M; ++m) {
-    const int64_t slot = int64_t(order[m] & 0xFFFFFFFFu);
+    const DrawnSlot<S>& slot = slots[int64_t(order[m] & 0xFFFFFFFFu)];
     if (m + 16 < M) {  // slots are read in depth order, i.e. scattered: fetch ahead
-      const int64_t ahead = int64_t(order[m + 16] & 0xFFFFFFFFu);
-      prefetch_record(recp, colp, 3, ahead);
-      __builtin_prefetch(rectp + 4 * ahead);
-      __builtin_prefetch(row_of + ahead);
+      const DrawnSlot<S>* ahead = &slots[int64_t(order[m + 16] & 0xFFFFFFFFu)];
+      for (size_t line = 0; line < sizeof(DrawnSlot<S>); line += 64)
+        __builtin_prefetch(reinterpret_cast<const char*>(ahead) + line);
     }
-    gi[m] = row_of[slot];
-    for (int j = 0; j < REC; ++j) rc[REC * m + j] = recp[REC * slot + j];
-    for (int j = 0; j < 3; ++j) cc[3 * m + j] = colp[3 * slot + j];
-    for (int j = 0; j < 4; ++j) rect_c[4 * m + j] = rectp[4 * slot + j];
+    gi[m] = slot.row;
+    for (int j = 0; j < REC; ++j) rc[REC * m + j] = slot.rec[j];
+    for (int j = 0; j < 3; ++j) cc[3 * m + j] = slot.col[j];
+    for (int j = 0; j < 4; ++j) rect_c[4 * m + j] = slot.rect[j];
     order[m] = (order[m] & ~uint64_t(0xFFFFFFFFu)) | uint64_t(uint32_t(m));  // now indexes the records
   }
-  auto [offsets, ids] = bin_ordered(order, rect_c.data(), tilesX, tilesY, nthreads);
+  lap(1);
+  at::Tensor offsets, ids;
+  std::tie(offsets, ids) = bin_ordered(order, rc, rect_c.data(), M, W, H, nthreads);
+  lap(2);
   auto acc = at::empty({H, W, 3}, opts);
   auto dn = at::empty({H, W}, opts);
   auto aa = at::empty({H, W}, opts);
   render_forward<S>(cam, 3, tilesX, tilesY, rc, cc, offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
                     acc.data_ptr<S>(), dn.data_ptr<S>(), aa.data_ptr<S>(), nthreads);
+  lap(3);
   return {acc, dn, aa, radii, means2d, rec, col, gidx, offsets, ids, at::full({1}, -1, at::kLong),
-          at::full({1}, N - rejected, at::kLong)};
+          at::full({1}, N - rejected, at::kLong), stages};
 }
 
 template <typename S>
@@ -1591,7 +1589,7 @@ std::vector<at::Tensor> backward_train_impl(const std::vector<RawGroup<S>>& grou
   bool any_move = false;
   for (const Segment& sg : segs) any_move = any_move || sg.mv.on;
   std::vector<double> move_sums(any_move ? 16 * chunks.size() : 0, 0.0);
-  // Dynamic chunks of rows, as in forward_gaussians_impl (no result depends on them).
+  // Dynamic chunks of rows, as in forward_train_impl (no result depends on them).
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
   for (size_t ci = 0; ci < chunks.size(); ++ci) {
     const Segment& sg = segs[chunks[ci].seg];
@@ -1734,37 +1732,6 @@ std::vector<at::Tensor> raster_forward(at::Tensor means, at::Tensor quats, at::T
   return forward_impl<double>(means, quats, scales, opac, colors, cam, near, far, eps2d, nt);
 }
 
-// Inference forward from Gaussians in groups (see forward_gaussians_impl): means (N_g,3),
-// quats (N_g,4), scales (N_g,3), opacities (N_g,) (both activated), sh0 (N_g,1,3), shN (N_g,K_g,3),
-// all float32 contiguous. Returns [rgb accumulation (H,W,3), depth numerator (H,W),
-// alpha (H,W), radii (N,) int32, means2d (N,2), first non-finite row (1,) int64 or -1 (then
-// nothing else is computed), Gaussians not culled before projection (1,) int64] over the
-// groups in order. ``cull``: reject Gaussians that cannot reach the image early.
-std::vector<at::Tensor> raster_forward_gaussians(std::vector<at::Tensor> means, std::vector<at::Tensor> quats,
-                                                 std::vector<at::Tensor> scales, std::vector<at::Tensor> opacities,
-                                                 std::vector<at::Tensor> sh0, std::vector<at::Tensor> shN,
-                                                 int64_t sh_degree, at::Tensor center, at::Tensor viewmat, at::Tensor K,
-                                                 int64_t width, int64_t height, double near, double far, double eps2d,
-                                                 bool cull, int64_t nthreads) {
-  const size_t G = means.size();
-  TORCH_CHECK(quats.size() == G && scales.size() == G && opacities.size() == G && sh0.size() == G && shN.size() == G,
-              "every parameter needs one tensor per group");
-  for (size_t g = 0; g < G; ++g) {
-    const int64_t n = means[g].size(0);
-    for (auto [t, name] : {std::pair{&means[g], "means"}, {&quats[g], "quats"}, {&scales[g], "scales"},
-                           {&opacities[g], "opacities"}, {&sh0[g], "sh0"}, {&shN[g], "shN"}}) {
-      check_cpu_contig(*t, at::kFloat, name);
-      TORCH_CHECK(t->size(0) == n, name, " of group ", g, " has ", t->size(0), " rows, expected ", n);
-    }
-    TORCH_CHECK(shN[g].dim() == 3 && shN[g].size(2) == 3 && sh0[g].numel() == 3 * n, "sh0 (N,1,3) / shN (N,K,3)");
-  }
-  auto c = center.detach().to(at::kCPU, at::kFloat).contiguous();
-  const float ctr[3] = {c.data_ptr<float>()[0], c.data_ptr<float>()[1], c.data_ptr<float>()[2]};
-  const Camera cam = make_camera(viewmat, K, int(width), int(height));
-  return forward_gaussians_impl(means, quats, scales, opacities, sh0, shN, int(sh_degree), ctr, cam, near, far, eps2d,
-                                cull, clamp_threads(nthreads));
-}
-
 // Returns [g_means (N,3), g_quats (N,4), g_scales (N,3), g_opacities (N,), g_colors (N,D), absgrad2d (N,2)].
 std::vector<at::Tensor> raster_backward(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor colors,
                                         at::Tensor viewmat, at::Tensor K, int64_t width, int64_t height, double near,
@@ -1790,7 +1757,8 @@ std::vector<at::Tensor> raster_backward(at::Tensor means, at::Tensor quats, at::
 // (N_g,3), opacity logits (N_g,), sh0 (N_g,1,3), shN (N_g,K_g,3), one dtype (float32 or float64),
 // contiguous. Returns [acc (H,W,3), depth numerator (H,W), alpha (H,W), radii (N,) int32,
 // means2d (N,2), records (M,REC), colours (M,3), drawn rows (M,) int64, tile offsets, tile ids,
-// first non-finite row (1,) or -1 (then nothing else is computed), Gaussians not culled (1,)].
+// first non-finite row (1,) or -1 (then nothing else is computed), Gaussians not culled (1,),
+// wall seconds of its stages (4,) float64: rows, depth order, binning, compositing].
 // ``seg_rows``, ``moves``, ``move_on``: the rows' moves (make_segments); ``viewmat`` is the
 // recorded camera's.
 //
@@ -1919,8 +1887,7 @@ at::Tensor ssim_backward(at::Tensor a, at::Tensor b, at::Tensor window, at::Tens
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &raster_forward, "Gaussian rasterization forward (CPU)");
   m.def("backward", &raster_backward, "Gaussian rasterization backward (CPU)");
-  m.def("forward_gaussians", &raster_forward_gaussians, "inference forward from raw Gaussian groups (CPU)");
-  m.def("forward_train", &raster_forward_train, "training forward from raw Gaussian groups (CPU)");
+  m.def("forward_train", &raster_forward_train, "forward from raw Gaussian groups (CPU; training and inference)");
   m.def("backward_train", &raster_backward_train, "training backward to raw Gaussian groups (CPU)");
   m.def("ssim_forward", &ssim_forward, "SSIM map of two images (CPU)");
   m.def("ssim_backward", &ssim_backward, "gradient of the SSIM map w.r.t. the first image (CPU)");
