@@ -72,6 +72,8 @@ from omnire.io.cache import user_cache_dir
 from omnire.io.documents import TomlDocument, load_json, load_toml, parse_json, parse_toml, read_text
 from omnire.io.images import write_png
 from omnire.io.outputs import OutputError, check_location, check_output_dir, staged_directory, staged_files, writing
+from omnire.lidarmodel import LIDAR_KEY, LidarConfig, LidarRender
+from omnire.lidarpoints import POINT_FIELDS, sweep_points, write_point_cloud
 from omnire.lidarprojection import (
     SphereTiles,
     SphericalSplats,
@@ -79,6 +81,16 @@ from omnire.lidarprojection import (
     project_lidar,
     ray_directions,
     wrap_degrees,
+)
+from omnire.lidarsweep import (
+    SensorPath,
+    SweepRays,
+    beam_model_sweep,
+    fixed_path,
+    recorded_sweep,
+    sector_poses,
+    sensor_path,
+    shifted_path,
 )
 from omnire.limits import (
     DEFAULT_FRAME_CAP,

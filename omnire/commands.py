@@ -92,6 +92,38 @@ class RenderArgs:
     """With --video: interpolate the camera path to this frame rate over the selected frames' time span (the video
     then holds frames between the recorded ones; PNGs are written for the recorded frames only). Default: the
     recorded frames at the log's rate."""
+    lidar: bool = False
+    """Render LiDAR sweeps instead of images: a point cloud per frame, lidar/<frame>.ply and .npz
+    (x, y, z, intensity, time, beam; omnire/lidarmodel.py), from the rays of the recorded sweep
+    (its missing returns too, where the scene knows its beams) cast from the recorded sensor
+    pose moved by --lidar-shift. Needs a run trained with --method.lidar.enabled."""
+    lidar_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """With --lidar: move the sensor by this offset in its own frame (x forward, y left, z up), metres."""
+    lidar_sectors: Optional[int] = None
+    """With --lidar: time sectors per sweep (rolling shutter; default: the run's --method.lidar.sectors)."""
+
+
+def render_lidar_frames(recon, frames: list[int], shift: tuple[float, float, float], sectors: int,
+                        folder: Path) -> int:
+    """Write the rendered sweep of each of ``frames`` as ``<folder>/<frame>.ply`` and ``.npz``
+    (omnire/lidarpoints.py); returns the number of sweeps written (frames without LiDAR are
+    skipped)."""
+    import numpy as np
+
+    from omnire.lidarpoints import sweep_points, write_point_cloud
+    from omnire.lidarsweep import recorded_sweep, sensor_path, shifted_path
+
+    path = shifted_path(sensor_path(recon.scene), np.asarray(shift, dtype=np.float64))
+    count = 0
+    for f in frames:
+        sweep = recorded_sweep(recon.scene, int(f))
+        if sweep is None:
+            continue
+        points = sweep_points(recon.render_sweep(sweep, path, sectors), sweep, path, sectors)
+        write_point_cloud(folder / f"{recon.scene.source_frames[f]:03d}", points,
+                          f"omnire render --lidar: frame {f}, sensor shift {list(shift)} m, step {recon.step}")
+        count += 1
+    return count
 
 
 def render_main(argv: list[str], plugins) -> int:
@@ -124,6 +156,17 @@ def render_main(argv: list[str], plugins) -> int:
     check_location(out_dir, "--output", (RunDirectory(args.run_dir).data_path(),), replaces=False)
     if args.fps is not None and not (args.video and args.fps > 0):
         raise ConfigError(f"--fps {args.fps}: needs --video and a rate > 0")
+    if args.lidar:
+        if not recon.renders_lidar:
+            raise ConfigError(f"--lidar: the run {args.run_dir} learned no LiDAR (train it with "
+                              "--method.lidar.enabled on a scene with LiDAR)")
+        sectors = args.lidar_sectors or recon.method.lidar.sectors
+        if sectors < 1:
+            raise ConfigError(f"--lidar-sectors {sectors}: must be >= 1")
+        with torch.no_grad(), staged_files(out_dir) as staging:
+            count = render_lidar_frames(recon, frames, args.lidar_shift, sectors, staging / "lidar")
+        output_console().print(f"wrote {count} LiDAR sweeps to {Path(out_dir) / 'lidar'}")
+        return 0
     count = 0
     # images and videos appear in out_dir when all are written (a failed write leaves none)
     with torch.no_grad(), staged_files(out_dir) as staging, contextlib.ExitStack() as stack:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from omnire.lidarmodel import LidarConfig
 from omnire.strategy import DensifyConfig
 
 
@@ -61,5 +62,8 @@ class MethodConfig:
     evaluation and rasterization (same image, less work; their rows get no optimiser step),
     and let nodes skip what the camera cannot see (actors out of view, in renders without
     autograd; deformablegs' canonical Gaussians beyond its cull margin)."""
+    lidar: LidarConfig = dataclasses.field(default_factory=LidarConfig)
+    """LiDAR as a rendered sensor (omnire/lidarmodel.py): off by default; --method.lidar.enabled
+    learns per-Gaussian intensity and ray drop and trains on rendered sweeps."""
     rasterizer: str = "auto"
     """Rasterizer backend name, or auto (gsplat on CUDA, native on CPU, else torch)."""

@@ -19,6 +19,7 @@ from omnire.data.scene import SceneData, SceneTime
 from omnire.errors import UserError
 from omnire.exposure import ExposureCompensation
 from omnire.gaussians import Gaussians
+from omnire.lidarmodel import LidarRender, activate, decode, lidar_features_for
 from omnire.nodes.base import EnvironmentNode, Node, NodeContext, NodeOutput
 from omnire.rasterization import Rasterizer, RasterSettings, Splats
 from omnire.strategy import NodeSlice
@@ -140,13 +141,18 @@ class SceneModel(nn.Module):
         generator = torch.Generator().manual_seed(seed)
         radius = scene_radius(scene)
         self.scene_radius = radius
+        self.lidar_features = lidar_features_for(method.lidar, scene)
+        if self.lidar_features is not None and "lidar" not in self.capabilities:
+            raise ModelBuildError(f"--method.lidar.enabled: the rasterizer {rasterizer.name!r} cannot render LiDAR "
+                                  "(no 'lidar' capability); choose one that can (omnire plugins lists them)")
         nodes = {}
         for name, spec in specs.items():
             is_actor_type = bool(spec.categories)
             if is_actor_type and not assigned[name]:
                 continue  # skip what the scene does not need: no actors, no node
             ctx = NodeContext(scene, images, radius, device, generator,
-                              excluded_tracks=[] if is_actor_type else actor_tracks, restoring=restoring)
+                              excluded_tracks=[] if is_actor_type else actor_tracks, restoring=restoring,
+                              lidar=self.lidar_features)
             nodes[name] = method.nodes[name].setup(context=ctx, tracks=assigned[name])
         self.nodes = nn.ModuleDict(nodes)
         self._background = torch.tensor(method.background_color, dtype=torch.float32, device=device)
@@ -332,6 +338,41 @@ class SceneModel(nn.Module):
             out, kept = self.rasterizer.rasterize_gaussians(gs, camera, degree, settings, cull=self.method.cull_to_view)
         rgb = self.finish_image(out.rgb, out.alpha, env, camera, t)
         return RenderResult(rgb, out.depth, out.alpha, out.absgrad2d, out.radii, slices, kept, outputs)
+
+    def render_lidar(self, parts: list[tuple[Node, Optional[NodeOutput]]], rays, settings=None) -> LidarRender:
+        """Render the world Gaussians of node outputs ``parts`` ((node, output or None), e.g.
+        :meth:`omnire.runtime.Reconstruction.drawn`'s groups) as a LiDAR sees them along
+        ``rays`` (:class:`~omnire.rasterization.LidarRays`, R rays): activated Gaussians with
+        their activated LiDAR features as colours through the rasterizer's
+        ``rasterize_lidar``, decoded per ray (:func:`omnire.lidarmodel.decode`). Rows of a
+        node without features (an actor inserted from a run that learned none) take this
+        scene's initial values. Environment nodes return nothing."""
+        from omnire.rasterization import LidarSettings
+
+        if self.lidar_features is None:
+            raise UserError("this scene learned no LiDAR features: train it with --method.lidar.enabled on a "
+                            "scene with LiDAR to render LiDAR")
+        columns: dict[str, list[torch.Tensor]] = {"means": [], "quats": [], "scales": [], "opacities": [], "f": []}
+        for node, out in parts:
+            if out is None or out.num_gaussians == 0:
+                continue
+            g = out.gaussians
+            features = node.lidar_features(out)
+            if features is None:
+                features = self.lidar_features.initial(len(g), g.means.device, g.means.dtype)
+            for key, value in (("means", g.means), ("quats", g.quats), ("scales", g.scales),
+                               ("opacities", g.opacities), ("f", features)):
+                columns[key].append(value)
+        R = len(rays.azimuth_deg)
+        if not columns["means"]:
+            zeros = torch.zeros(R, device=self.device)
+            return LidarRender(zeros, zeros.clone(), zeros.clone(), torch.ones(R, device=self.device), zeros.clone())
+        cat = {k: torch.cat(v) for k, v in columns.items()}
+        splats = Splats(cat["means"], cat["quats"], torch.exp(cat["scales"]), torch.sigmoid(cat["opacities"]),
+                        activate(cat["f"]))
+        out = self.rasterizer.rasterize_lidar(splats, rays, LidarSettings() if settings is None else settings)
+        intensity, drop = decode(out.features, out.alpha)
+        return LidarRender(out.range, out.median_range, intensity, drop, out.alpha, len(splats))
 
     def composite(self, g: Optional[Gaussians], slices: list[NodeSlice], outputs: dict[str, NodeOutput],
                   camera: Camera, t: SceneTime, sh_degree: int = 3, hidden: frozenset[str] = frozenset()

@@ -28,8 +28,9 @@ from __future__ import annotations
 import copy
 import logging
 from pathlib import Path
-from typing import Collection, Iterable, Iterator, Mapping, Optional, Protocol
+from typing import TYPE_CHECKING, Collection, Iterable, Iterator, Mapping, Optional, Protocol
 
+import numpy as np
 import torch
 
 from omnire.camera import Camera
@@ -38,10 +39,15 @@ from omnire.model import RenderResult, SceneModel, enabled_node_specs
 from omnire.nodes.actors import ActorNode, ActorState
 from omnire.nodes.base import EnvironmentNode, Node, NodeOutput
 from omnire.gaussians import Gaussians
+from omnire.lidarmodel import LidarRender
+from omnire.lidarsweep import SensorPath, SweepRays, sector_poses
 from omnire.rasterization import Rasterizer, describe_paths, select_backend
 from omnire.rundir import RunDirectory, RunInfo, find_checkpoint
 from omnire.runconfig import TrainConfig, parse_train_args
 from omnire.strategy import NodeSlice
+
+if TYPE_CHECKING:
+    from omnire.rasterization import LidarRays, LidarSettings
 
 log = logging.getLogger("omnire.runtime")
 
@@ -294,6 +300,12 @@ class Reconstruction:
     def num_gaussians(self) -> int:
         return self.model.num_gaussians()
 
+    @property
+    def renders_lidar(self) -> bool:
+        """The scene learned LiDAR features (``--method.lidar.enabled`` on a scene with LiDAR),
+        so :meth:`render_lidar` can render it."""
+        return self.model.lidar_features is not None
+
     def sh_degree(self, step: Optional[int] = None) -> int:
         """SH bands switched on after ``step`` training steps (default: the state's step)."""
         s = self.step if step is None else step
@@ -385,6 +397,42 @@ class Reconstruction:
         if only is not None:
             hidden = frozenset(hidden) | frozenset(self.environment_nodes())
         return self.render_outputs(parts, camera, time, step, sh_degree, hidden)
+
+    def render_lidar(self, rays: LidarRays, time: SceneTime, step: Optional[int] = None,
+                     hidden: Collection[str] = frozenset(), edits: Optional[ActorEdits] = None,
+                     only: Optional[Collection[str]] = None, settings: Optional[LidarSettings] = None) -> LidarRender:
+        """Render LiDAR ``rays`` (one sensor pose, R rays) at scene moment ``time``: what
+        :meth:`drawn` yields (``edits``, ``only``, ``hidden`` as there), activated, with the
+        learned LiDAR features as colours, through the rasterizer's ``rasterize_lidar``
+        (:meth:`omnire.model.SceneModel.render_lidar`). Per ray: range, median range,
+        intensity, ray-drop probability (:class:`~omnire.lidarmodel.LidarRender`)."""
+        drawn = list(self.drawn(time, edits, only, hidden))
+        outputs = self.node_outputs(drawn, None, time, step)
+        return self.model.render_lidar([(d.node, out) for d, (_, out) in zip(drawn, outputs)], rays, settings)
+
+    def render_sweep(self, sweep: SweepRays, path: SensorPath, sectors: int = 1, step: Optional[int] = None,
+                     hidden: Collection[str] = frozenset(), edits: Optional[ActorEdits] = None,
+                     settings: Optional[LidarSettings] = None) -> LidarRender:
+        """Render a sweep's rays (:class:`~omnire.lidarsweep.SweepRays`, in the order given)
+        from the sensor poses ``path`` gives at their times, in ``sectors`` equal time spans
+        (rolling shutter: each span's rays see the scene, and are cast from the sensor, at the
+        span's mean time; :func:`~omnire.lidarsweep.sector_poses`)."""
+        from omnire.rasterization import LidarRays
+
+        parts = []
+        t0 = float(self.scene.frame_timestamps[0])
+        groups, moments, poses = sector_poses(sweep.times, path, sectors)
+        for idx, seconds, pose in zip(groups, moments, poses):
+            rays = LidarRays(torch.as_tensor(pose, dtype=torch.float32, device=self.device),
+                             torch.as_tensor(sweep.azimuth_deg[idx], dtype=torch.float32, device=self.device),
+                             torch.as_tensor(sweep.elevation_deg[idx], dtype=torch.float32, device=self.device),
+                             sweep.min_range, sweep.max_range)
+            parts.append(self.render_lidar(rays, self.time_since_start(float(seconds) - t0), step, hidden, edits,
+                                           settings=settings))
+        if not parts:
+            empty = torch.zeros(0, device=self.device)
+            return LidarRender(empty, empty, empty, empty, empty)
+        return LidarRender.cat(parts, torch.as_tensor(np.concatenate(groups), device=self.device))
 
     def render_view(self, view: View, step: Optional[int] = None) -> RenderResult:
         """Render the recorded camera and moment of ``view``."""

@@ -30,6 +30,7 @@ from omnire.config import to_dict
 from omnire.data.scene import SceneData, SceneTime, View
 from omnire.errors import ConfigError, UserError
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
+from omnire.lidartraining import LidarTraining
 from omnire.losses import LossContext, masked_mean, ssim_map
 from omnire.model import RenderResult
 from omnire.nodes.base import NodeOutput
@@ -64,8 +65,8 @@ class TrainingInterrupted(UserError):
         self.signum = signum
 
 
-STEP_STAGES: tuple[str, ...] = ("prepare", "nodes", "render", "loss", "backward", "densify_stats", "optimizer",
-                                "densify")
+STEP_STAGES: tuple[str, ...] = ("prepare", "nodes", "render", "lidar", "loss", "backward", "densify_stats",
+                                "optimizer", "densify")
 """The stages of one training step, in order (each is ``Trainer.stage_<name>``):
 
 - ``prepare``: the SH bands stored up to the step's degree, the view's camera at the step's
@@ -73,6 +74,9 @@ STEP_STAGES: tuple[str, ...] = ("prepare", "nodes", "render", "loss", "backward"
 - ``nodes``: every Gaussian node's output at the moment (``Reconstruction.drawn`` +
   ``node_outputs``);
 - ``render``: rasterizer forward and environment (``Reconstruction.render_outputs``);
+- ``lidar``: with ``--method.lidar.enabled``, every ``lidar.every`` steps, a training frame's
+  sweep (``lidar.rays_per_step`` of its rays) rendered (``Reconstruction.render_sweep``) and
+  its loss terms (omnire/lidarloss.py); nothing otherwise;
 - ``loss``: loss terms and node regularisers, their sum, and the step's statistics;
 - ``backward``: ``loss.backward()`` (rasterizer backward, autograd of nodes and losses);
 - ``densify_stats``: the AbsGrad statistics (:meth:`AbsGradStrategy.accumulate`);
@@ -93,6 +97,7 @@ class StepState:
     result: Optional[RenderResult] = None
     context: Optional[LossContext] = None
     terms: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)
+    lidar_terms: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)
     loss: Optional[torch.Tensor] = None
     stats: dict[str, float] = dataclasses.field(default_factory=dict)
 
@@ -163,6 +168,7 @@ class Trainer:
         self.train_views = self.scene.views(self.scene.train_frames)
         self.test_views = self.scene.views(self.scene.test_frames)
         self.train_seconds = 0.0
+        self.lidar = LidarTraining(self.recon, tc.seed + 2) if self.model.lidar_features is not None else None
         self._sh_bands_degree: Optional[int] = None  # the degree fit_sh_bands last stored bands for
         self.observers: list = []
         self._stop_signal: Optional[int] = None
@@ -344,9 +350,13 @@ class Trainer:
     def stage_render(self, s: StepState) -> None:
         s.result = self.recon.render_outputs(s.parts, s.camera, s.time, step=self.step)
 
+    def stage_lidar(self, s: StepState) -> None:
+        if self.lidar is not None and self.step % self.config.method.lidar.every == 0:
+            s.lidar_terms = self.lidar.loss_terms(self.config.method.lidar, self.step)
+
     def stage_loss(self, s: StepState) -> None:
         s.context = self.loss_context(s.view, s.result, s.factor)
-        s.terms = self.loss_terms(s.context, s.result, s.camera, s.time)
+        s.terms = {**self.loss_terms(s.context, s.result, s.camera, s.time), **s.lidar_terms}
         s.loss = sum(s.terms.values())
         if not torch.isfinite(s.loss):
             raise TrainingError(
@@ -497,6 +507,7 @@ class Trainer:
             "strategy": self.strategy.state_dict(),
             "rng_torch": torch.get_rng_state(),
             "rng_sampler": self.sampler.get_state(),
+            **({"rng_lidar": self.lidar.sampler.get_state()} if self.lidar is not None else {}),
             "train_seconds": self.train_seconds,
         }
 
@@ -522,6 +533,8 @@ class Trainer:
         self.strategy.load_state_dict(state["strategy"])
         torch.set_rng_state(state["rng_torch"])
         self.sampler.set_state(state["rng_sampler"])
+        if self.lidar is not None and "rng_lidar" in state:
+            self.lidar.sampler.set_state(state["rng_lidar"])
         self.train_seconds = float(state.get("train_seconds", 0.0))
         self._sh_bands_degree = None
 

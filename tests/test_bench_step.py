@@ -30,8 +30,8 @@ def test_bench_step_times_both_paths(tmp_path, capsys):
     assert result["at_step"] == 3000 and result["steps_taken_to"] == 3000 + 2 * 3
     assert set(result["paths"]) == {"fused", "unfused"}
     for stages in result["paths"].values():
-        assert set(stages) == {"prepare", "nodes", "render", "loss", "backward", "densify_stats", "optimizer",
-                               "densify", "total", "total_cpu"}
+        assert set(stages) == {"prepare", "nodes", "render", "lidar", "loss", "backward", "densify_stats",
+                               "optimizer", "densify", "total", "total_cpu"}
         assert stages["total"]["median_ms"] > 0 and stages["render"]["median_ms"] > 0
     machine = result["machine"]  # what the numbers were measured on
     assert machine["threads"] == 1 and machine["logical_cores"] >= 1

@@ -20,6 +20,10 @@ Contract of a :class:`Node`:
 - ``param_groups()`` lists learning-rate groups, per-Gaussian ones by key.
 - ``row_order()`` (optional): a permutation restoring the row order the node relies on
   after densification (actor nodes keep each instance's rows contiguous).
+- ``lidar_features(output)``: the LiDAR features (omnire/lidarmodel.py) of an output's
+  Gaussians, read from the ``lidar`` parameter by the output's ``rows``; a node built through
+  :meth:`Node.init_gaussians` holds them when the method renders LiDAR, with nothing more to
+  write.
 
 :class:`GaussianNode` carries what Gaussian-holding nodes share (config, scene radius,
 per-Gaussian learning rates); :class:`EnvironmentNode` is the base of nodes that paint the
@@ -37,6 +41,7 @@ from omnire.camera import Camera
 from omnire.config import InstantiateConfig
 from omnire.data.scene import SceneTime
 from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
+from omnire.lidarmodel import LIDAR_KEY, LidarFeatures
 from omnire.placement import Placement
 
 
@@ -156,6 +161,8 @@ class NodeContext:
         restoring: the node is built to receive a checkpoint: skip the data-driven
             initialisation (LiDAR, images, pose estimation); per-Gaussian tensors start
             empty and every persistent tensor comes from the checkpoint.
+        lidar: the LiDAR features every Gaussian gets (omnire/lidarmodel.py), or None when
+            the method renders no LiDAR (then no Gaussian holds any).
     """
 
     scene: Any
@@ -165,6 +172,7 @@ class NodeContext:
     generator: torch.Generator
     excluded_tracks: list = dataclasses.field(default_factory=list)
     restoring: bool = False
+    lidar: Optional[LidarFeatures] = None
 
 
 class Node(nn.Module):
@@ -213,11 +221,28 @@ class Node(nn.Module):
 
     def init_gaussians(self, context: NodeContext, build: Callable[[], dict[str, torch.Tensor]]) -> None:
         """Set ``gaussian_params`` from ``build()`` (raw tensors by key), or, when restoring a
-        checkpoint, to empty placeholders of every key (resized by :meth:`prepare_load`)."""
+        checkpoint, to empty placeholders of every key (resized by :meth:`prepare_load`).
+        With ``context.lidar`` every Gaussian also gets the LiDAR features (:data:`LIDAR_KEY`,
+        initial values)."""
+        if context.lidar is not None:
+            self.gaussian_keys = type(self).gaussian_keys + (LIDAR_KEY,)
+            self.lidar_lr = context.lidar.lr
         tensors = ({k: torch.zeros(0, device=context.device) for k in self.gaussian_keys} if context.restoring
                    else build())
+        if context.lidar is not None and not context.restoring:
+            means = tensors["means"]
+            tensors[LIDAR_KEY] = context.lidar.initial(means.shape[0], means.device, means.dtype)
         for k in self.gaussian_keys:
             self.gaussian_params[k] = nn.Parameter(tensors[k])
+
+    def lidar_features(self, output: NodeOutput) -> Optional[torch.Tensor]:
+        """(M, 2) raw LiDAR features (omnire/lidarmodel.py) of the Gaussians of ``output``
+        (one of this node's outputs: its ``rows``), or None when the node holds none.
+        Gradients reach the parameter densely: (N, 2) is small next to the Gaussians."""
+        if LIDAR_KEY not in self.gaussian_params:
+            return None
+        features = self.gaussian_params[LIDAR_KEY]
+        return features if output.rows is None else features.index_select(0, output.rows)
 
     def set_gaussian_tensors(self, tensors: dict[str, torch.Tensor]) -> None:
         """Replace every per-Gaussian tensor (used by densification and checkpoint loading)."""
@@ -265,7 +290,10 @@ class GaussianNode(Node):
         self.scene_radius = context.scene_radius
 
     def gaussian_lrs(self) -> dict[str, tuple[float, Optional[float]]]:
-        return self.config.gaussian_lrs(self.scene_radius)
+        lrs = self.config.gaussian_lrs(self.scene_radius)
+        if LIDAR_KEY in self.gaussian_params:
+            lrs[LIDAR_KEY] = (self.lidar_lr, None)
+        return lrs
 
 
 class EnvironmentNode(Node):

@@ -75,22 +75,23 @@ def compose(means: np.ndarray, quats: np.ndarray, pose: Pose) -> tuple[np.ndarra
 @dataclasses.dataclass
 class Part:
     """Gaussians of one node (world frame, ``pose`` None) or of one actor (its box frame at
-    the moment, placed in the world by ``pose``)."""
+    the moment, placed in the world by ``pose``); ``lidar``: their LiDAR features (n, 2)
+    when the scene learned them (omnire/lidarmodel.py)."""
 
     node: str
     gaussians: Gaussians
     track_id: Optional[str] = None
     instance: Optional[int] = None
     pose: Optional[Pose] = None
+    lidar: Optional[torch.Tensor] = None
 
     def __len__(self) -> int:
         return len(self.gaussians)
 
     def arrays(self, start: int, stop: int) -> dict[str, np.ndarray]:
-        """Rows start:stop as numpy arrays in the world frame (``GAUSSIAN_KEYS`` names)."""
-        g = self.gaussians
-        out = {k: getattr(g, k)[start:stop].detach().cpu().numpy() for k in
-               ("means", "quats", "scales", "opacities", "sh0", "shN")}
+        """Rows start:stop as numpy arrays in the world frame (``GAUSSIAN_KEYS`` names, and
+        ``lidar`` when the part has LiDAR features)."""
+        out = self.local_arrays(start, stop)
         if self.pose is not None:
             out["means"], out["quats"] = compose(out["means"], out["quats"], self.pose)
         return out
@@ -98,8 +99,11 @@ class Part:
     def local_arrays(self, start: int, stop: int) -> dict[str, np.ndarray]:
         """Rows start:stop in the part's own frame (the box frame for actors)."""
         g = self.gaussians
-        return {k: getattr(g, k)[start:stop].detach().cpu().numpy() for k in
-                ("means", "quats", "scales", "opacities", "sh0", "shN")}
+        out = {k: getattr(g, k)[start:stop].detach().cpu().numpy() for k in
+               ("means", "quats", "scales", "opacities", "sh0", "shN")}
+        if self.lidar is not None:
+            out["lidar"] = self.lidar[start:stop].detach().cpu().numpy()
+        return out
 
 
 def actor_batches(node: ActorNode, ids: torch.Tensor, max_rows: int) -> list[torch.Tensor]:
@@ -140,6 +144,7 @@ def actor_parts(name: str, node: ActorNode, t: SceneTime, state: ActorState, max
         if out.rows is None:
             raise ValueError(f"node {name!r}: gaussians_for returned no rows; cannot tell its actors apart")
         instance = node.gaussian_buffers["instance"][out.rows]
+        lidar = node.lidar_features(out)
         ids, counts = torch.unique_consecutive(instance, return_counts=True)
         start = 0
         for i, c in zip(ids.tolist(), counts.tolist(), strict=True):
@@ -147,7 +152,8 @@ def actor_parts(name: str, node: ActorNode, t: SceneTime, state: ActorState, max
             g = Gaussians(*(getattr(out.gaussians, f)[start:start + c] for f in
                             ("means", "quats", "scales", "opacities", "sh0", "shN")))
             pose = Pose.from_rt(state.R[k].detach().cpu().numpy(), state.t[k].detach().cpu().numpy())
-            yield Part(name, g, node.track_ids[int(i)], int(i), pose)
+            yield Part(name, g, node.track_ids[int(i)], int(i), pose,
+                       None if lidar is None else lidar[start:start + c])
             start += c
 
 
@@ -162,4 +168,4 @@ def scene_parts(recon, t: SceneTime, max_rows: int = 1 << 16, hidden: frozenset[
         else:
             out = drawn.output()
             if out is not None and len(out.gaussians):
-                yield Part(drawn.node_name, out.gaussians)
+                yield Part(drawn.node_name, out.gaussians, lidar=drawn.node.lidar_features(out))

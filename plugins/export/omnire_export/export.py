@@ -54,25 +54,34 @@ class Written:
 
 
 def write_parts(path: Path, parts: Iterable[Part], sh_degree: int, chunk_rows: int = DEFAULT_CHUNK_ROWS,
-                comments: tuple[str, ...] = ()) -> int:
-    """Stream ``parts`` (world frame) into one PLY at ``path``; returns the vertex count."""
-    with PlyStreamWriter(path, comments) as out:
+                comments: tuple[str, ...] = (), lidar: bool = False) -> int:
+    """Stream ``parts`` (world frame) into one PLY at ``path``; returns the vertex count.
+    ``lidar``: the parts carry LiDAR features, written as ``omnire_export.ply.LIDAR_PROPERTIES``."""
+    with PlyStreamWriter(path, comments, lidar) as out:
         for part in parts:
             for start in range(0, len(part), chunk_rows):
-                a = part.arrays(start, min(len(part), start + chunk_rows))
-                out.write(pack_rows(a["means"], a["quats"], a["scales"], a["opacities"], a["sh0"], a["shN"],
-                                    sh_degree))
+                out.write(packed(part.arrays(start, min(len(part), start + chunk_rows)), sh_degree, lidar))
         return out.count
 
 
 def write_local(path: Path, part: Part, sh_degree: int, chunk_rows: int = DEFAULT_CHUNK_ROWS,
                 comments: tuple[str, ...] = ()) -> int:
-    """One part in its own frame (box frame for an actor) as a PLY at ``path``."""
-    with PlyStreamWriter(path, comments) as out:
+    """One part in its own frame (box frame for an actor) as a PLY at ``path`` (with
+    ``omnire_export.ply.LIDAR_PROPERTIES`` when it has LiDAR features)."""
+    lidar = part.lidar is not None
+    with PlyStreamWriter(path, comments, lidar) as out:
         for start in range(0, len(part), chunk_rows):
-            a = part.local_arrays(start, min(len(part), start + chunk_rows))
-            out.write(pack_rows(a["means"], a["quats"], a["scales"], a["opacities"], a["sh0"], a["shN"], sh_degree))
+            out.write(packed(part.local_arrays(start, min(len(part), start + chunk_rows)), sh_degree, lidar))
         return out.count
+
+
+def packed(a: dict, sh_degree: int, lidar: bool):
+    """PLY rows of :meth:`Part.arrays` output ``a``; ``lidar``: with its LiDAR features
+    (refused when the part has none, rather than writing a made-up value)."""
+    if lidar and "lidar" not in a:
+        raise ValueError("a part without LiDAR features in a PLY with LiDAR properties")
+    return pack_rows(a["means"], a["quats"], a["scales"], a["opacities"], a["sh0"], a["shN"], sh_degree,
+                     a["lidar"] if lidar else None)
 
 
 def environment_maps(recon) -> dict[str, torch.Tensor]:
@@ -124,7 +133,7 @@ def export_scene(recon, t: SceneTime, path: Path, chunk_rows: int = DEFAULT_CHUN
     one PLY at ``path``; returns the Gaussian count. Streams: at most ``chunk_rows`` rows
     are converted at a time."""
     return write_parts(path, scene_parts(recon, t, chunk_rows), recon.sh_degree(), chunk_rows,
-                       header_comments(recon, t))
+                       header_comments(recon, t), lidar=recon.renders_lidar)
 
 
 def recorded_poses(recon, node: ActorNode) -> dict[int, list[dict]]:

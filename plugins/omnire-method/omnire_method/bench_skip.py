@@ -4,6 +4,10 @@
    build no SMPL or deformable node and cost the same per step as ``streetgs``.
 2. Absent actors: adding many short-lived actors that are absent from the rendered frames
    must not change the cost of a step at those frames.
+3. LiDAR rendering: ``--method.lidar.enabled`` on the scene without its LiDAR must cost
+   nothing (no LiDAR features are made, no sweep is rendered); on the scene with its LiDAR the
+   cost of the LiDAR steps is measured (averaged over the steps, one in ``lidar.every``
+   renders a sweep), when the rasterizer renders LiDAR.
 
 Both run in one process with the same seed, scene, rasterizer and views; per-step times are
 medians over ``steps`` training steps after ``warmup`` steps, the configurations of each
@@ -22,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-from omnire.api import atomic_write_text, visible_in_cameras
+from omnire.api import UserError, atomic_write_text, visible_in_cameras
 
 
 @dataclasses.dataclass
@@ -47,10 +51,11 @@ class SkipBenchArgs:
     """JSON output."""
 
 
-def _trainer(plugins, method: str, dataparser: str, scene, seed: int = 0):
+def _trainer(plugins, method: str, dataparser: str, scene, seed: int = 0, lidar: bool = False):
     from omnire.api import TrainConfig, Trainer, TrainerConfig
 
     cfg = plugins.methods.get(method).config_factory()
+    cfg.lidar.enabled = lidar
     cfg.densify.refine_start = 10**9  # fixed Gaussian count: time the same work
     tc = TrainerConfig(max_steps=10**6, progress=False, seed=seed)
     return Trainer(TrainConfig(method, dataparser, cfg, None, tc), plugins, scene=scene, persist=False)
@@ -120,6 +125,25 @@ def main(argv: list[str], plugins) -> int:
                     "ms_per_step": ms, "gaussians": tr.recon.num_gaussians()}
                    for k, tr, ms in zip(args.extra_actors, trainers, times)]
     out["absent_actors"] = absent_rows
+    del trainers
+
+    # LiDAR rendering: off, on without LiDAR in the scene, on with it (when the rasterizer can)
+    no_lidar = copy.copy(scene)
+    no_lidar.lidar = None
+    configs = [("off", scene, False), ("on, scene without LiDAR", no_lidar, True)]
+    try:
+        probe = _trainer(plugins, args.baseline, args.dataparser, scene, lidar=True)
+        del probe
+        configs.append(("on", scene, True))
+        lidar_note = None
+    except UserError as exc:  # the rasterizer renders no LiDAR
+        lidar_note = str(exc)
+    trainers = [_trainer(plugins, args.baseline, args.dataparser, s, lidar=on) for _, s, on in configs]
+    times = _time_steps(trainers, [tr.train_views for tr in trainers], args.warmup, args.steps)
+    lidar_rows = [{"lidar": name, "parameters": sum(p.numel() for p in tr.model.parameters()), "ms_per_step": ms,
+                   "gaussians": tr.recon.num_gaussians()} for (name, _, _), tr, ms in zip(configs, trainers, times)]
+    out["lidar"] = lidar_rows
+    out["lidar_note"] = lidar_note
     args.output.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.output, json.dumps(out, indent=2))
 
@@ -137,4 +161,12 @@ def main(argv: list[str], plugins) -> int:
     for r in absent_rows:
         t2.add_row(str(r["extra_actors"]), str(r["rigid_instances"]), str(r["gaussians"]), f"{r['ms_per_step']:.1f}")
     console.print(t2)
+    t3 = Table(title=f"LiDAR rendering ({args.baseline}; on: a sweep every --method.lidar.every steps, averaged)")
+    for c in ("--method.lidar", "Gaussians", "parameters", "ms / step"):
+        t3.add_column(c)
+    for r in lidar_rows:
+        t3.add_row(r["lidar"], str(r["gaussians"]), str(r["parameters"]), f"{r['ms_per_step']:.1f}")
+    console.print(t3)
+    if lidar_note:
+        console.print(f"LiDAR on: not measured ({lidar_note})")
     return 0

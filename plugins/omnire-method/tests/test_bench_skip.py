@@ -1,6 +1,6 @@
 """``omnire bench skip`` end to end (real subprocess, a few steps): without humans omnire
 builds exactly streetgs's nodes; absent actors add instances and Gaussians that the timed
-frames never render."""
+frames never render; LiDAR rendering on a scene without LiDAR adds no parameter."""
 import json
 import os
 import subprocess
@@ -28,3 +28,8 @@ def test_bench_skip_builds_no_human_machinery_and_adds_absent_actors(tmp_path):
     assert some["rigid_instances"] == none["rigid_instances"] + 20 and some["gaussians"] > none["gaussians"]
     assert all(r["ms_per_step"] > 0 for r in result["no_humans"] + result["absent_actors"])
     assert "omnire overhead" in out.stdout
+    off, without = result["lidar"][:2]  # LiDAR on for a scene without LiDAR: not one more parameter
+    assert (off["lidar"], without["lidar"]) == ("off", "on, scene without LiDAR")
+    assert without["parameters"] == off["parameters"] and without["gaussians"] == off["gaussians"]
+    if len(result["lidar"]) == 3:  # the rasterizer renders LiDAR: two features per Gaussian
+        assert result["lidar"][2]["parameters"] == off["parameters"] + 2 * off["gaussians"]

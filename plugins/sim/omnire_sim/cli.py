@@ -31,8 +31,12 @@ from omnire.api import (
     check_fps,
     check_image_size,
     check_output_dir,
+    recorded_sweep,
+    sensor_path,
     staged_directory,
+    sweep_points,
     write_png,
+    write_point_cloud,
 )
 from omnire.command_api import CameraPath, Mp4Writer, file_path, interpolated_path, recorded_path
 from omnire_sim.edits import CameraSpec, Scenario
@@ -76,6 +80,11 @@ class SimArgs:
     """Refuse camera paths of more frames than this (a guard against runaway requests; raise it for long paths)."""
     progress: bool = True
     """Show a progress bar."""
+    lidar: bool = False
+    """Also render the LiDAR at every frame of the path, with the scenario's edits: lidar/<index>.ply and .npz
+    (omnire render --lidar's fields). The sensor rides its recorded path at the frame's scene time and fires the rays
+    of the nearest recorded sweep (a lane shift of the cameras does not move it). Needs a run trained with
+    --method.lidar.enabled."""
 
 
 def build_path(scene, spec: CameraSpec, scenario: Scenario, cameras: tuple[str, ...] = (),
@@ -109,7 +118,7 @@ def build_path(scene, spec: CameraSpec, scenario: Scenario, cameras: tuple[str, 
 
 
 SIM_TOOL = "omnire sim"
-SIM_KINDS = (".png", ".mp4", ".json")
+SIM_KINDS = (".png", ".mp4", ".json", ".ply", ".npz")
 """What omnire sim writes into its output directory (what --overwrite may replace)."""
 
 
@@ -118,6 +127,20 @@ def check_output(output: Path, run_dir: Path, overwrite: bool) -> None:
     existing one unless ``overwrite`` and it is omnire sim's own (omnire/io/outputs.py)."""
     check_output_dir(output, SIM_TOOL, overwrite=overwrite, kinds=SIM_KINDS,
                      protect=(run_dir, RunDirectory(run_dir).data_path()))
+
+
+def sim_sweep(sim: Simulation, scene_time) -> np.ndarray:
+    """The LiDAR point cloud (omnire.api.POINT_FIELDS) of the edited scene at ``scene_time``:
+    the rays of the nearest recorded sweep, fired at the same offsets from ``scene_time`` as
+    they were from their frame's, from the recorded sensor path, rendered with the edits."""
+    recon = sim.recon
+    scene = recon.scene
+    have = [f for f in range(scene.num_frames) if scene.lidar.points[f] is not None]
+    frame = min(have, key=lambda f: abs(float(scene.frame_timestamps[f]) - scene_time.seconds))
+    sweep = recorded_sweep(scene, frame)
+    sweep = dataclasses.replace(sweep, times=sweep.times + (scene_time.seconds - float(scene.frame_timestamps[frame])))
+    path, sectors = sensor_path(scene), recon.method.lidar.sectors
+    return sweep_points(recon.render_sweep(sweep, path, sectors, edits=sim), sweep, path, sectors)
 
 
 def _summary(sim: Simulation) -> list[dict]:
@@ -154,6 +177,9 @@ def run_sim(args: SimArgs, plugins, argv: Optional[list[str]] = None) -> Path:
         raise ConfigError(f"--frame-cap {args.frame_cap}: must be >= 1")
     check_output(args.output, args.run_dir, args.overwrite)
     recon = Reconstruction.from_run(args.run_dir, plugins, args.checkpoint)
+    if args.lidar and not recon.renders_lidar:
+        raise ConfigError(f"--lidar: the run {args.run_dir} learned no LiDAR (train it with --method.lidar.enabled "
+                          "on a scene with LiDAR)")
     check_against_scene(scenario, recon.scene)
     sim = Simulation(recon, scenario, plugins)
     size = (args.width, args.height) if args.width is not None else None
@@ -206,6 +232,10 @@ def run_sim(args: SimArgs, plugins, argv: Optional[list[str]] = None) -> Path:
                     if want.video:
                         videos[name].append(result.rgb)
                     entry["cameras"][name] = cam_entry
+                if args.lidar:
+                    rel = f"lidar/{i:05d}"
+                    write_point_cloud(staging / rel, sim_sweep(sim, scene_time), f"omnire sim: path frame {i}")
+                    entry["lidar"] = [f"{rel}.ply", f"{rel}.npz"]
                 frames_meta.append(entry)
                 progress.update(task, advance=1)
         manifest = {
@@ -222,6 +252,7 @@ def run_sim(args: SimArgs, plugins, argv: Optional[list[str]] = None) -> Path:
                             "sizes": [list(s) for s in path.sizes], "frames": n_frames, "fps": path.fps,
                             "scene_seconds": [float(f["scene_seconds"]) for f in frames_meta]},
             "outputs": {"frames": want.frames, "depth": want.depth, "alpha": want.alpha, "depth_units": "millimetres",
+                        "lidar": args.lidar,
                         "videos": {n: f"{n}.mp4" for n in path.names} if want.video else {},
                         "video_fps": fps if want.video else None, "video_codec": "h264 (libx264, yuv420p)",
                         "crf": want.crf},

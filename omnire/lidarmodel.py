@@ -1,0 +1,155 @@
+"""Learned LiDAR appearance: the per-Gaussian features a LiDAR sensor renders and what a
+rendered ray makes of them (docs/lidar.md, "Learned LiDAR appearance").
+
+With ``--method.lidar.enabled`` on a scene that has LiDAR, every Gaussian node gets one more
+per-Gaussian parameter, :data:`LIDAR_KEY` (N, 2) raw logits: the return intensity and the
+ray-drop probability of the Gaussian's surface (sigmoid-activated). Being a per-Gaussian
+parameter like the colour, it is cloned, split and pruned by densification, cut by
+compaction, saved in checkpoints and exported. Without the flag, or on a scene without
+LiDAR, the parameter does not exist: nothing is stored, stepped or rendered.
+
+A sweep renders the activated features through the rasterizer's ``rasterize_lidar``
+(omnire/rasterization.py) and turns them into per-ray outputs (:func:`decode`):
+
+- intensity: the features' first channel normalised by the ray's opacity, as the expected
+  range is (an intensity given that the ray returns);
+- ray-drop probability: ``sum_i w_i d_i + (1 - alpha)``: the Gaussians' drop probabilities
+  weighted as they are composited, and a ray that meets nothing (transparent, e.g. the sky)
+  returns nothing.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Optional
+
+import numpy as np
+import torch
+
+LIDAR_KEY = "lidar"
+"""Per-Gaussian parameter key of the LiDAR features (N, 2): intensity logit, ray-drop logit."""
+
+LIDAR_CHANNELS = ("intensity", "ray_drop")
+"""The feature channels, in column order."""
+
+
+@dataclasses.dataclass
+class LidarConfig:
+    """LiDAR as a rendered sensor: learned per-Gaussian intensity and ray drop, LiDAR losses.
+
+    Loss weights default to SplatAD's (neurad-studio ``SplatADModelConfig``: depth 0.1 as an L1
+    on range, intensity 1.0 as an L2, ray drop 0.1 as a binary cross-entropy); the OmniRe
+    paper's code renders no LiDAR and has none."""
+
+    enabled: bool = False
+    """Learn LiDAR intensity and ray drop on every Gaussian and train on rendered sweeps
+    (needs a rasterizer with the ``lidar`` capability and a scene with LiDAR)."""
+    every: int = 4
+    """A training step also renders a LiDAR sweep every this many steps."""
+    rays_per_step: int = 16384
+    """Rays of the sweep rendered in such a step (a random subset; 0: every ray)."""
+    range_weight: float = 0.1
+    """Weight of the L1 range error on rays that returned."""
+    intensity_weight: float = 1.0
+    """Weight of the squared intensity error on rays that returned."""
+    ray_drop_weight: float = 0.1
+    """Weight of the ray-drop binary cross-entropy (returned vs missing rays; needs the
+    sweep's beams and beam model to know the missing ones)."""
+    lr: float = 0.01
+    """Adam learning rate of the feature logits."""
+    init_ray_drop: float = 0.05
+    """Initial ray-drop probability of every Gaussian."""
+    sectors: int = 4
+    """Time sectors a sweep is rendered in (rolling shutter): the rays of each sector see the
+    scene at the sector's mean time (1: the whole sweep at the frame's moment)."""
+
+    def __post_init__(self) -> None:
+        from omnire.errors import ConfigError
+
+        for name in ("every", "sectors"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"--method.lidar.{name} {getattr(self, name)}: must be >= 1")
+        if self.rays_per_step < 0:
+            raise ConfigError(f"--method.lidar.rays-per-step {self.rays_per_step}: must be >= 0 (0: every ray)")
+        for name in ("range_weight", "intensity_weight", "ray_drop_weight", "lr"):
+            value = getattr(self, name)
+            if not (value >= 0 and math.isfinite(value)):
+                raise ConfigError(f"--method.lidar.{name.replace('_', '-')} {value}: must be a finite number >= 0")
+        if not 0.0 < self.init_ray_drop < 1.0:
+            raise ConfigError(f"--method.lidar.init-ray-drop {self.init_ray_drop}: expected a probability in (0, 1)")
+
+
+@dataclasses.dataclass(frozen=True)
+class LidarFeatures:
+    """What a node needs to hold LiDAR features: their initial activated values and lr."""
+
+    init_intensity: float
+    init_ray_drop: float
+    lr: float
+
+    def initial(self, n: int, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """(n, 2) raw logits of the initial values."""
+        values = torch.tensor([self.init_intensity, self.init_ray_drop], dtype=dtype, device=device)
+        return torch.logit(values.clamp(1e-4, 1 - 1e-4)).expand(n, 2).clone()
+
+
+def lidar_features_for(config: LidarConfig, scene) -> Optional[LidarFeatures]:
+    """The features the nodes of a method with ``config`` hold on ``scene``: None when LiDAR
+    rendering is off or the scene has no LiDAR. Intensity starts at the median return
+    intensity of the training sweeps (0.5 when the dataset records none)."""
+    lidar = getattr(scene, "lidar", None)
+    if not config.enabled or lidar is None:
+        return None
+    intensity = 0.5
+    if lidar.intensity is not None:
+        values = [lidar.intensity[int(f)] for f in scene.train_frames if lidar.intensity[int(f)] is not None]
+        if values:
+            intensity = float(np.median(np.concatenate(values)))
+    return LidarFeatures(intensity, config.init_ray_drop, config.lr)
+
+
+def activate(raw: torch.Tensor) -> torch.Tensor:
+    """(N, 2) logits -> (N, 2) intensity and ray-drop probability in [0, 1]."""
+    return torch.sigmoid(raw)
+
+
+def decode(features: torch.Tensor, alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rendered features (R, 2) = sum_i w_i f_i and opacity alpha (R,) -> (intensity (R,),
+    ray-drop probability (R,)) as the module docstring defines them."""
+    intensity = features[:, 0] / alpha.clamp_min(1e-10)
+    drop = (features[:, 1] + (1.0 - alpha)).clamp(0.0, 1.0)
+    return intensity, drop
+
+
+@dataclasses.dataclass
+class LidarRender:
+    """A rendered sweep, per ray (R rays).
+
+    Attributes:
+        range: (R,) expected range in metres (sum_i w_i r_i / alpha).
+        median_range: (R,) range where the transmittance falls to 0.5 (the rasterizer's
+            definition).
+        intensity: (R,) return intensity in [0, 1] (see :func:`decode`).
+        ray_drop: (R,) probability that the ray returns nothing.
+        alpha: (R,) opacity accumulated along the ray.
+        num_gaussians: Gaussians handed to the rasterizer.
+    """
+
+    range: torch.Tensor
+    median_range: torch.Tensor
+    intensity: torch.Tensor
+    ray_drop: torch.Tensor
+    alpha: torch.Tensor
+    num_gaussians: int = 0
+
+    @staticmethod
+    def cat(parts: list["LidarRender"], order: Optional[torch.Tensor] = None) -> "LidarRender":
+        """Concatenate renders of disjoint ray sets; ``order`` (R,) puts ray k of the
+        concatenation at position ``order[k]`` (e.g. back in the sweep's order)."""
+        fields = ("range", "median_range", "intensity", "ray_drop", "alpha")
+        cat = {f: torch.cat([getattr(p, f) for p in parts]) for f in fields}
+        if order is not None:
+            inverse = torch.empty_like(order)
+            inverse[order] = torch.arange(len(order), device=order.device)
+            cat = {f: v[inverse] for f, v in cat.items()}
+        return LidarRender(**cat, num_gaussians=max((p.num_gaussians for p in parts), default=0))
