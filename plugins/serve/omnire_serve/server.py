@@ -1,7 +1,7 @@
 """The HTTP application of ``omnire serve`` (FastAPI): neurad-studio's closed-loop endpoints
 (``/alive``, ``/start_time``, ``/get_actors``, ``/update_actors``, ``/render_image``) with
 their request and response shapes, and omnire's own (``/metadata``, ``/render_rig``,
-``/actors_at``, ``/scenario``, ``/reset``). docs/closed_loop.md is the reference.
+``/render_lidar``, ``/actors_at``, ``/scenario``, ``/reset``). docs/closed_loop.md is the reference.
 
 Every refusal is JSON ``{"error": {"field": ..., "message": ...}}`` with a 4xx status;
 a failure inside the renderer is a 500 with the same shape; the server keeps serving.
@@ -25,6 +25,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from omnire_serve.errors import RequestError
 from omnire_serve.imaging import FORMATS, encode
+from omnire_serve.lidar import FORMATS as LIDAR_FORMATS
+from omnire_serve.lidar import encode_points
 from omnire_serve.served import Episode, ServedScene
 
 SESSION_HEADER = "X-Omnire-Session"
@@ -208,6 +210,24 @@ def create_app(served: ServedScene, token: Optional[str] = None) -> FastAPI:
             out[name] = {"width": image.shape[1], "height": image.shape[0], "format": fmt,
                          "data": content.decode() if fmt == "raw" else base64.b64encode(content).decode()}
         return JSONResponse({"timestamp": data["timestamp"], "images": out})
+
+    @app.post("/render_lidar")
+    async def render_lidar(request: Request):
+        episode = sessions.get(request)
+        data = await _body(request)
+        pose = served.pose(_field(data, "pose"), "pose")
+        seconds = served.seconds_at(_field(data, "timestamp"))
+        model = served.beam_model(_field(data, "beam_model", None))
+        fmt = _field(data, "format", "npz")
+        if fmt not in LIDAR_FORMATS:
+            raise RequestError("format", f"{fmt!r}: expected one of {list(LIDAR_FORMATS)}")
+        rays = model.num_beams * model.num_azimuths
+        if fmt == "json" and rays > served.limits.max_json_rays:
+            raise RequestError("format", f"a sweep of {rays} rays is too large for JSON (at most "
+                                         f"{served.limits.max_json_rays}); ask for npz", 413)
+        points = await run_in_threadpool(episode.render_lidar, pose, seconds, model)
+        content, media = encode_points(points, fmt)
+        return Response(content=content, media_type=media)
 
     @app.post("/actors_at")
     async def actors_at(request: Request):
