@@ -149,7 +149,8 @@ def test_bad_lidar_requests_answer_json_and_the_server_goes_on(server, served):
          {"json": {**good, "beam_model": {**SMALL_BEAMS, "elevations_deg": [0.0, 95.0]}}}),
         ("lidar: unknown beam field", "beam_model.fov", 400,
          {"json": {**good, "beam_model": {**SMALL_BEAMS, "fov": 30}}}),
-        ("lidar: JSON of a large sweep", "format", 413, {"json": {**good, "beam_model": BEAMS, "format": "json"}}),
+        ("lidar: JSON of a large sweep", "format", 413,
+         {"json": {**good, "beam_model": {**BEAMS, "azimuth_step_deg": 0.25}, "format": "json"}}),
         ("lidar: unknown format", "format", 400, {"json": {**good, "format": "ply"}}),
         ("lidar: missing pose", "pose", 400, {"json": {"timestamp": stamp}}),
     ]
@@ -168,7 +169,7 @@ def test_beam_model_refusals():
     with pytest.raises(RequestError, match="more than the limit") as err:
         beam_model_from({**SMALL_BEAMS, "azimuth_step_deg": 0.01}, None, 1000)
     assert err.value.status == 413
-    model = beam_model_from(SMALL_BEAMS, None, 1000)
+    model = beam_model_from(SMALL_BEAMS, None, 2000)
     assert (model.num_beams, model.num_azimuths, model.min_range) == (8, 180, 0.0)
 
 
