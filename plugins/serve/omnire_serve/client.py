@@ -1,6 +1,6 @@
 """A Python client of ``omnire serve`` (httpx): every endpoint as a method, images as
-(H, W, 3) uint8 arrays, LiDAR sweeps as (meta, field arrays), refusals raised as :class:`ServerRefused` with the server's field
-and message."""
+(H, W, 3) uint8 arrays, LiDAR sweeps as (meta, field arrays), refusals raised as
+:class:`ServerRefused` with the server's field and message."""
 from __future__ import annotations
 
 import base64

@@ -188,12 +188,15 @@ def create_app(served: ServedScene, token: Optional[str] = None) -> FastAPI:
     async def metadata():
         return JSONResponse(await run_in_threadpool(served.metadata))
 
-    @app.post("/render_rig")
-    async def render_rig(request: Request):
+    async def posed(request: Request) -> tuple[Episode, Any, Any, float]:
+        """(episode, body, checked 4x4 ``pose``, seconds of ``timestamp``) of a render request."""
         episode = sessions.get(request)
         data = await _body(request)
-        rig = served.pose(_field(data, "pose"), "pose")
-        seconds = served.seconds_at(_field(data, "timestamp"))
+        return episode, data, served.pose(_field(data, "pose"), "pose"), served.seconds_at(_field(data, "timestamp"))
+
+    @app.post("/render_rig")
+    async def render_rig(request: Request):
+        episode, data, rig, seconds = await posed(request)
         names = _field(data, "cameras", None)
         if names is None:
             cams = list(range(len(served.camera_names)))
@@ -213,10 +216,7 @@ def create_app(served: ServedScene, token: Optional[str] = None) -> FastAPI:
 
     @app.post("/render_lidar")
     async def render_lidar(request: Request):
-        episode = sessions.get(request)
-        data = await _body(request)
-        pose = served.pose(_field(data, "pose"), "pose")
-        seconds = served.seconds_at(_field(data, "timestamp"))
+        episode, data, pose, seconds = await posed(request)
         model = served.beam_model(_field(data, "beam_model", None))
         fmt = _field(data, "format", "npz")
         if fmt not in LIDAR_FORMATS:

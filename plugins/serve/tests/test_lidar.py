@@ -50,7 +50,8 @@ def expected_points(served, scenario_text: str, sensor: np.ndarray, seconds: flo
     drop = r.ray_drop.numpy()
     kept = np.flatnonzero(drop < 0.5)
     az, el = np.deg2rad(rays.azimuth_deg.double().numpy()[kept]), np.deg2rad(rays.elevation_deg.double().numpy()[kept])
-    local = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1) * r.range.double().numpy()[kept, None]
+    direction = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
+    local = direction * r.range.double().numpy()[kept, None]
     world = local @ sensor[:3, :3].T + sensor[:3, 3]
     return world, r.intensity.numpy()[kept], drop[kept], kept
 
@@ -89,7 +90,8 @@ def test_points_equal_render_lidar_in_process(which, request):
         served, f'[[actor]]\ntrack = "{WHITE_CAR}"\nstop_at = 1.0\nbrake = 0.5\n', sensor, seconds, SMALL_BEAMS)
     assert small_meta["points"] == len(kept) and np.array_equal(small["column"], kept % 180)
     assert np.allclose(np.stack([small["x"], small["y"], small["z"]], 1), world, atol=1e-4)
-    r = httpx.post(server.url + "/render_lidar", json={"pose": sensor.tolist(), "timestamp": stamp, "beam_model": BEAMS},
+    r = httpx.post(server.url + "/render_lidar",
+                   json={"pose": sensor.tolist(), "timestamp": stamp, "beam_model": BEAMS},
                    headers={"X-Omnire-Session": "lidar-media"}, timeout=300)
     assert r.status_code == 200 and r.headers["content-type"] == NPZ_MEDIA
 
@@ -187,7 +189,7 @@ def test_env_lidar_observation(lidar_served, lidar_server):
     image = o1[LIDAR_OBSERVATION]
     assert image.dtype == np.float32 and (image > 0).mean() > 0.5 and image.max() <= 80.0
     assert np.array_equal(image, o2[LIDAR_OBSERVATION])
-    assert LIDAR_OBSERVATION not in DrivingEnv(LocalTransport(lidar_served), EnvConfig(cameras=("front_camera",),
-                                                                                    size=(48, 27))).observation_space.spaces
+    cameras_only = DrivingEnv(LocalTransport(lidar_served), EnvConfig(cameras=("front_camera",), size=(48, 27)))
+    assert LIDAR_OBSERVATION not in cameras_only.observation_space.spaces
     with pytest.raises(ValueError, match="beam model"):
         DrivingEnv(LocalTransport(lidar_served), EnvConfig(cameras=("front_camera",), size=(48, 27), lidar=True))
