@@ -28,8 +28,9 @@ def test_bench_skip_builds_no_human_machinery_and_adds_absent_actors(tmp_path):
     assert some["rigid_instances"] == none["rigid_instances"] + 20 and some["gaussians"] > none["gaussians"]
     assert all(r["ms_per_step"] > 0 for r in result["no_humans"] + result["absent_actors"])
     assert "omnire overhead" in out.stdout
-    off, without = result["lidar"][:2]  # LiDAR on for a scene without LiDAR: not one more parameter
-    assert (off["lidar"], without["lidar"]) == ("off", "on, scene without LiDAR")
-    assert without["parameters"] == off["parameters"] and without["gaussians"] == off["gaussians"]
-    if len(result["lidar"]) == 3:  # the rasterizer renders LiDAR: two features per Gaussian
-        assert result["lidar"][2]["parameters"] == off["parameters"] + 2 * off["gaussians"]
+    off, on = result["lidar"][:2]  # LiDAR on for a scene without LiDAR: not one more parameter
+    assert (off["lidar"], on["lidar"]) == (False, True) and off["scene"] == on["scene"] == "scene without LiDAR"
+    assert on["parameters"] == off["parameters"] and on["gaussians"] == off["gaussians"]
+    if len(result["lidar"]) == 4:  # the rasterizer renders LiDAR: two features per Gaussian
+        off, on = result["lidar"][2:]
+        assert on["parameters"] == off["parameters"] + 2 * off["gaussians"] and on["gaussians"] == off["gaussians"]
