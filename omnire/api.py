@@ -88,7 +88,7 @@ from omnire.lidarsweep import (
     beam_model_sweep,
     fixed_path,
     recorded_sweep,
-    sector_poses,
+    sectors_of,
     sensor_path,
     shifted_path,
 )

@@ -16,10 +16,11 @@ import io
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from omnire.io.atomic import atomic_write_bytes
 from omnire.lidarmodel import LidarRender
-from omnire.lidarsweep import SensorPath, SweepRays, sector_poses
+from omnire.lidarsweep import SensorPath, SweepRays, sectors_of
 
 POINT_FIELDS = (("x", "f4"), ("y", "f4"), ("z", "f4"), ("intensity", "f4"), ("time", "f8"), ("beam", "i2"))
 """Point-cloud fields and their numpy types, in file order."""
@@ -28,10 +29,9 @@ POINT_FIELDS = (("x", "f4"), ("y", "f4"), ("z", "f4"), ("intensity", "f4"), ("ti
 def sweep_points(render: LidarRender, sweep: SweepRays, path: SensorPath, sectors: int) -> np.ndarray:
     """The returning rays of ``render`` (rendered by ``Reconstruction.render_sweep(sweep,
     path, sectors)``) as a structured (P,) array of :data:`POINT_FIELDS`."""
-    groups, _, poses = sector_poses(sweep.times, path, sectors)
     pose = np.zeros((len(sweep), 4, 4))
-    for idx, p in zip(groups, poses):
-        pose[idx] = p
+    for sector in sectors_of(sweep, path, sectors, dtype=torch.float64):
+        pose[sector.index.numpy()] = sector.rays.sensor_to_world.numpy()
     drop = render.ray_drop.detach().cpu().numpy()
     keep = drop < 0.5
     rng = render.range.detach().cpu().numpy().astype(np.float64)[keep]

@@ -1,22 +1,35 @@
 """The rays of one LiDAR sweep and what came back along them: the recorded sweep of a frame
 (returns, plus the missing returns where the scene knows its beams), or every ray of a beam
-model from a pose no sensor visited; and the sensor's path, for rendering a sweep in time
-sectors (rolling shutter). Conventions: docs/lidar.md.
+model from a pose no sensor visited; and the sensor's path, from which a sweep is rendered
+in time sectors (rolling shutter, omnire/rollingshutter.py). Conventions: docs/lidar.md.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
+import torch
 
 from omnire.beams import points_in_sensor_frame, range_image, spherical
 from omnire.data.scene import BeamModel, SceneData
 from omnire.errors import UserError
 from omnire.interpolation import interpolate_poses
+from omnire.rollingshutter import SweepSector, sweep_sectors
 
-SensorPath = Callable[[np.ndarray], np.ndarray]
-"""Seconds on the log's clock (K,) -> sensor-to-world poses (K, 4, 4)."""
+
+@dataclasses.dataclass(frozen=True)
+class SensorPath:
+    """The sensor's pose over time: ``poses`` (K, 4, 4) sensor-to-world known at increasing
+    ``times`` (K,) seconds on the log's clock, interpolated between them (rotation SLERP,
+    translation linear) and held outside."""
+
+    times: np.ndarray
+    poses: np.ndarray
+
+    def at(self, t) -> np.ndarray:
+        """(Q, 4, 4) poses at the times ``t`` (Q,)."""
+        return interpolate_poses(self.times, self.poses, np.atleast_1d(np.asarray(t, dtype=np.float64)))
 
 
 @dataclasses.dataclass
@@ -79,7 +92,7 @@ def sensor_path(scene: SceneData) -> SensorPath:
     else:
         poses = np.tile(np.eye(4), (int(have.sum()), 1, 1))
         poses[:, :3, 3] = np.asarray(lidar.origins, dtype=np.float64)[have]
-    return lambda t: interpolate_poses(times, poses, np.asarray(t, dtype=np.float64))
+    return SensorPath(times, poses)
 
 
 def recorded_sweep(scene: SceneData, frame: int) -> Optional[SweepRays]:
@@ -97,7 +110,7 @@ def recorded_sweep(scene: SceneData, frame: int) -> Optional[SweepRays]:
              else np.full(len(points), frame_time))
     path = sensor_path(scene)
     pose_times = np.unique(np.concatenate([times, [frame_time]])) if len(times) else np.array([frame_time])
-    local = points_in_sensor_frame(points, times, pose_times, path(pose_times))
+    local = points_in_sensor_frame(points, times, pose_times, path.at(pose_times))
     rng, az, el = spherical(local)
     intensity = (lidar.intensity[frame].astype(np.float32) if lidar.intensity is not None
                  else np.full(len(points), np.nan, np.float32))
@@ -140,31 +153,18 @@ def shifted_path(path: SensorPath, offset: np.ndarray) -> SensorPath:
     y left, z up)."""
     move = np.eye(4)
     move[:3, 3] = offset
-    return lambda t: path(t) @ move
+    return SensorPath(path.times, path.poses @ move)
 
 
 def fixed_path(sensor_to_world: np.ndarray) -> SensorPath:
     """A sensor standing at ``sensor_to_world`` (4, 4) at every time."""
-    pose = np.asarray(sensor_to_world, dtype=np.float64)
-    return lambda t: np.broadcast_to(pose, (len(np.atleast_1d(t)), 4, 4)).copy()
+    return SensorPath(np.zeros(1), np.asarray(sensor_to_world, dtype=np.float64)[None])
 
 
-def sector_poses(times: np.ndarray, path: SensorPath, sectors: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
-    """The sectors a sweep of rays fired at ``times`` (R,) is rendered in: (rays of each
-    sector (:func:`time_sectors`), the sectors' moments (S,) seconds (their rays' mean time),
-    the sensor pose of each (S, 4, 4) from ``path``)."""
-    groups = time_sectors(times, sectors)
-    moments = np.array([float(times[g].mean()) for g in groups])
-    return groups, moments, path(moments) if len(groups) else np.zeros((0, 4, 4))
-
-
-def time_sectors(times: np.ndarray, sectors: int) -> list[np.ndarray]:
-    """Indices of the rays of each of ``sectors`` equal spans of ``times`` (R,) (the empty
-    ones left out), in time order: each is rendered at its rays' mean time."""
-    if len(times) == 0:
-        return []
-    lo, hi = float(times.min()), float(times.max())
-    if sectors <= 1 or hi <= lo:
-        return [np.arange(len(times))]
-    k = np.minimum(((times - lo) / (hi - lo) * sectors).astype(np.int64), sectors - 1)
-    return [idx for idx in (np.flatnonzero(k == s) for s in range(sectors)) if len(idx)]
+def sectors_of(sweep: SweepRays, path: SensorPath, sectors: int, device: torch.device | str = "cpu",
+               dtype: torch.dtype = torch.float32) -> list[SweepSector]:
+    """The rays of ``sweep`` in ``sectors`` time sectors, each cast from ``path``'s pose at its
+    middle time (:func:`omnire.rollingshutter.sweep_sectors`)."""
+    return sweep_sectors(torch.as_tensor(sweep.azimuth_deg, dtype=dtype, device=device),
+                         torch.as_tensor(sweep.elevation_deg, dtype=dtype, device=device), sweep.times,
+                         path.times, path.poses, sweep.min_range, sweep.max_range, sectors)

@@ -30,7 +30,6 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Collection, Iterable, Iterator, Mapping, Optional, Protocol
 
-import numpy as np
 import torch
 
 from omnire.camera import Camera
@@ -40,7 +39,7 @@ from omnire.nodes.actors import ActorNode, ActorState
 from omnire.nodes.base import EnvironmentNode, Node, NodeOutput
 from omnire.gaussians import Gaussians
 from omnire.lidarmodel import LidarRender
-from omnire.lidarsweep import SensorPath, SweepRays, sector_poses
+from omnire.lidarsweep import SensorPath, SweepRays, sectors_of
 from omnire.rasterization import Rasterizer, describe_paths, select_backend
 from omnire.rundir import RunDirectory, RunInfo, find_checkpoint
 from omnire.runconfig import TrainConfig, parse_train_args
@@ -420,23 +419,17 @@ class Reconstruction:
         """Render a sweep's rays (:class:`~omnire.lidarsweep.SweepRays`, in the order given)
         from the sensor poses ``path`` gives at their times, in ``sectors`` equal time spans
         (rolling shutter: each span's rays see the scene, and are cast from the sensor, at the
-        span's mean time; :func:`~omnire.lidarsweep.sector_poses`)."""
-        from omnire.rasterization import LidarRays
-
-        parts = []
+        span's middle time; :func:`~omnire.lidarsweep.sectors_of`)."""
+        parts, order = [], []
         t0 = float(self.scene.frame_timestamps[0])
-        groups, moments, poses = sector_poses(sweep.times, path, sectors)
-        for idx, seconds, pose in zip(groups, moments, poses):
-            rays = LidarRays(torch.as_tensor(pose, dtype=torch.float32, device=self.device),
-                             torch.as_tensor(sweep.azimuth_deg[idx], dtype=torch.float32, device=self.device),
-                             torch.as_tensor(sweep.elevation_deg[idx], dtype=torch.float32, device=self.device),
-                             sweep.min_range, sweep.max_range)
-            parts.append(self.render_lidar(rays, self.time_since_start(float(seconds) - t0), step, hidden, edits,
+        for sector in sectors_of(sweep, path, sectors, self.device):
+            parts.append(self.render_lidar(sector.rays, self.time_since_start(sector.time - t0), step, hidden, edits,
                                            settings=settings))
+            order.append(sector.index)
         if not parts:
             empty = torch.zeros(0, device=self.device)
             return LidarRender(empty, empty, empty, empty, empty)
-        return LidarRender.cat(parts, torch.as_tensor(np.concatenate(groups), device=self.device))
+        return LidarRender.cat(parts, torch.cat(order))
 
     def render_view(self, view: View, step: Optional[int] = None) -> RenderResult:
         """Render the recorded camera and moment of ``view``."""

@@ -160,6 +160,6 @@ after 300 steps, 0.041 m after 500 (4,000-8,000 rays a step)."""
 
 def test_sensor_path_without_sensor_poses_uses_world_axes(tiny_scene):
     path = sensor_path(tiny_scene)
-    pose = path(np.array([float(tiny_scene.frame_timestamps[0])]))[0]
+    pose = path.at(float(tiny_scene.frame_timestamps[0]))[0]
     np.testing.assert_array_equal(pose[:3, :3], np.eye(3))
     np.testing.assert_array_equal(pose[:3, 3], tiny_scene.lidar.origins[0])
