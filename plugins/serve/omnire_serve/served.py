@@ -137,7 +137,7 @@ class ServedScene:
         frame nearest to ``seconds`` (as :meth:`mounted` mounts cameras)."""
         frame = float(np.interp(seconds, self.seconds, np.arange(len(self.seconds))))
         near = int(np.clip(np.round(frame), 0, len(self.seconds) - 1))
-        sensor = sensor_path(self.recon.scene)(np.array([float(self.recon.scene.frame_timestamps[near])]))[0]
+        sensor = sensor_path(self.recon.scene).at(float(self.recon.scene.frame_timestamps[near]))[0]
         return rig_to_world @ (np.linalg.inv(self.rig[near]) @ sensor)
 
     def beam_model(self, value, field: str = "beam_model") -> BeamModel:
