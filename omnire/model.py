@@ -340,17 +340,22 @@ class SceneModel(nn.Module):
         timings["environment"] = time.perf_counter() - clock
         return RenderResult(rgb, out.depth, out.alpha, out.absgrad2d, out.radii, slices, kept, outputs, timings)
 
-    def render_lidar(self, parts: list[tuple[Node, Optional[NodeOutput]]], rays, settings=None) -> LidarRender:
+    def render_lidar(self, parts: list[tuple[Node, Optional[NodeOutput]]], rays, settings=None,
+                     geometry_only: bool = False) -> LidarRender:
         """Render the world Gaussians of node outputs ``parts`` ((node, output or None), e.g.
         :meth:`omnire.runtime.Reconstruction.drawn`'s groups) as a LiDAR sees them along
         ``rays`` (:class:`~omnire.rasterization.LidarRays`, R rays): activated Gaussians with
         their activated LiDAR features as colours through the rasterizer's
         ``rasterize_lidar``, decoded per ray (:func:`omnire.lidarmodel.decode`). Rows of a
         node without features (an actor inserted from a run that learned none) take this
-        scene's initial values. Environment nodes return nothing."""
+        scene's initial values. Environment nodes return nothing.
+
+        ``geometry_only``: ignore learned features (and allow a scene that learned none): the
+        range is rendered, intensity is NaN and the ray-drop probability is 1 - alpha (a ray
+        returns what it meets, nothing else drops)."""
         from omnire.rasterization import LidarSettings
 
-        if self.lidar_features is None:
+        if self.lidar_features is None and not geometry_only:
             raise UserError("this scene learned no LiDAR features: train it with --method.lidar.enabled on a "
                             "scene with LiDAR to render LiDAR")
         columns: dict[str, list[torch.Tensor]] = {"means": [], "quats": [], "scales": [], "opacities": [], "f": []}
@@ -358,8 +363,10 @@ class SceneModel(nn.Module):
             if out is None or out.num_gaussians == 0:
                 continue
             g = out.gaussians
-            features = node.lidar_features(out)
-            if features is None:
+            features = None if geometry_only else node.lidar_features(out)
+            if geometry_only:
+                features = g.means.new_zeros(len(g), 1)
+            elif features is None:
                 features = self.lidar_features.initial(len(g), g.means.device, g.means.dtype)
             for key, value in (("means", g.means), ("quats", g.quats), ("scales", g.scales),
                                ("opacities", g.opacities), ("f", features)):
@@ -372,6 +379,9 @@ class SceneModel(nn.Module):
         splats = Splats(cat["means"], cat["quats"], torch.exp(cat["scales"]), torch.sigmoid(cat["opacities"]),
                         activate(cat["f"]))
         out = self.rasterizer.rasterize_lidar(splats, rays, LidarSettings() if settings is None else settings)
+        if geometry_only:
+            return LidarRender(out.range, out.median_range, torch.full_like(out.alpha, float("nan")),
+                               (1.0 - out.alpha).clamp(0.0, 1.0), out.alpha, len(splats))
         intensity, drop = decode(out.features, out.alpha)
         return LidarRender(out.range, out.median_range, intensity, drop, out.alpha, len(splats))
 

@@ -424,15 +424,19 @@ class Reconstruction:
 
     def render_lidar(self, rays: LidarRays, time: SceneTime, step: Optional[int] = None,
                      hidden: Collection[str] = frozenset(), edits: Optional[ActorEdits] = None,
-                     only: Optional[Collection[str]] = None, settings: Optional[LidarSettings] = None) -> LidarRender:
+                     only: Optional[Collection[str]] = None, settings: Optional[LidarSettings] = None,
+                     geometry_only: bool = False) -> LidarRender:
         """Render LiDAR ``rays`` (one sensor pose, R rays) at scene moment ``time``: what
         :meth:`drawn` yields (``edits``, ``only``, ``hidden`` as there), activated, with the
         learned LiDAR features as colours, through the rasterizer's ``rasterize_lidar``
         (:meth:`omnire.model.SceneModel.render_lidar`). Per ray: range, median range,
-        intensity, ray-drop probability (:class:`~omnire.lidarmodel.LidarRender`)."""
+        intensity, ray-drop probability (:class:`~omnire.lidarmodel.LidarRender`).
+        ``geometry_only``: range alone, also for a scene that learned no LiDAR features
+        (intensity NaN, ray drop 1 - alpha; :meth:`omnire.model.SceneModel.render_lidar`)."""
         drawn = list(self.drawn(time, edits, only, hidden))
         outputs = self.node_outputs(drawn, None, time, step)
-        return self.model.render_lidar([(d.node, out) for d, (_, out) in zip(drawn, outputs)], rays, settings)
+        return self.model.render_lidar([(d.node, out) for d, (_, out) in zip(drawn, outputs)], rays, settings,
+                                       geometry_only)
 
     def render_sweep(self, sweep: SensorRays, path: SensorPath, sectors: int = 1, step: Optional[int] = None,
                      hidden: Collection[str] = frozenset(), edits: Optional[ActorEdits] = None,

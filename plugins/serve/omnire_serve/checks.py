@@ -19,13 +19,17 @@ ORTHONORMAL_TOLERANCE = 1e-3
 class Limits:
     """What a request may ask for. ``margin``: metres a pose may lie outside the scene's
     extent (the box around every recorded camera, ego and actor position and LiDAR point); ``max_pixels``: width x height of
-    one image; ``max_side``: the longest image side."""
+    one image; ``max_side``: the longest image side; ``max_lidar_rays``: rays of one LiDAR
+    revolution (beams x azimuth steps); ``max_json_rays``: the most rays a sweep answered as
+    JSON may have (npz has no such limit)."""
 
     margin: float = 50.0
     max_pixels: int = 960 * 540
     max_side: int = 4096
     max_body_bytes: int = 8 * 1024 * 1024
     max_sessions: int = 8
+    max_lidar_rays: int = 64 * 4096
+    max_json_rays: int = 32 * 1024
 
 
 def pose_matrix(value, field: str, extent: tuple[np.ndarray, np.ndarray], margin: float) -> np.ndarray:

@@ -49,6 +49,8 @@ class ServeArgs:
     """Most pixels of one rendered image."""
     max_sessions: int = Limits.max_sessions
     """Most sessions (X-Omnire-Session ids) held at once."""
+    max_lidar_rays: int = Limits.max_lidar_rays
+    """Most rays of one rendered LiDAR revolution (beams x azimuth steps)."""
     threads: int = 0
     """Torch threads for rendering (0: torch's default)."""
 
@@ -104,14 +106,15 @@ def main(argv: list[str], plugins) -> int:
     if token is None and not is_loopback(args.host):
         raise ConfigError(f"--host {args.host}: not a loopback address; serving it needs a token "
                           f"(set {TOKEN_ENV} or pass --token-file)")
-    if args.margin < 0 or args.max_pixels <= 0 or args.max_sessions <= 0:
-        raise ConfigError("--margin must be >= 0, --max-pixels and --max-sessions > 0")
+    if args.margin < 0 or args.max_pixels <= 0 or args.max_sessions <= 0 or args.max_lidar_rays <= 0:
+        raise ConfigError("--margin must be >= 0, --max-pixels, --max-sessions and --max-lidar-rays > 0")
     if args.assets is not None and not args.assets.is_dir():
         raise ConfigError(f"--assets {args.assets}: not a directory")
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     scenario = load_scenario(args.scenario) if args.scenario is not None else None
-    limits = Limits(margin=args.margin, max_pixels=args.max_pixels, max_sessions=args.max_sessions)
+    limits = Limits(margin=args.margin, max_pixels=args.max_pixels, max_sessions=args.max_sessions,
+                    max_lidar_rays=args.max_lidar_rays)
     recon = Reconstruction.from_run(args.run_dir, plugins, args.checkpoint)
     served = ServedScene(recon, plugins, scenario, limits, args.assets)
     served.corridor  # noqa: B018 - computed before the first client waits for it

@@ -1,6 +1,6 @@
 """A Python client of ``omnire serve`` (httpx): every endpoint as a method, images as
-(H, W, 3) uint8 arrays, refusals raised as :class:`ServerRefused` with the server's field
-and message."""
+(H, W, 3) uint8 arrays, LiDAR sweeps as (meta, field arrays), refusals raised as
+:class:`ServerRefused` with the server's field and message."""
 from __future__ import annotations
 
 import base64
@@ -11,6 +11,7 @@ import httpx
 import numpy as np
 
 from omnire_serve.imaging import decode
+from omnire_serve.lidar import decode_points
 from omnire_serve.server import SESSION_HEADER
 
 
@@ -106,6 +107,17 @@ class OmnireClient(contextlib.AbstractContextManager):
         if size is not None:
             data["width"], data["height"] = int(size[0]), int(size[1])
         return decode(self.post("/render_image", data).content, image_format)
+
+    def render_lidar(self, sensor_to_world: np.ndarray, timestamp: int, beam_model: Optional[dict] = None,
+                     fmt: str = "npz") -> tuple[dict, dict[str, np.ndarray]]:
+        """(meta, field -> (P,) array) of one LiDAR revolution (omnire_serve.lidar); ``beam_model``
+        as /render_lidar takes it (default: the scene's)."""
+        data = {"pose": np.asarray(sensor_to_world, dtype=np.float64).tolist(), "timestamp": int(timestamp),
+                "format": fmt}
+        if beam_model is not None:
+            data["beam_model"] = beam_model
+        r = self.post("/render_lidar", data)
+        return decode_points(r.content, r.headers.get("content-type", ""))
 
     def render_rig(self, rig_to_world: np.ndarray, timestamp: int, cameras: Optional[Sequence[str]] = None,
                    size: Optional[tuple[int, int]] = None, image_format: str = "raw") -> dict[str, np.ndarray]:

@@ -13,7 +13,10 @@ the rendered moment), on leaving the drivable corridor (the ego's centre beyond 
 corridor's border, corridor.py), or at the route's end (within ``end_tolerance`` metres of
 it); it is truncated when the log has no later moment to show.
 
-Observations: a dict camera name -> (H, W, 3) uint8. ``info``: ``t`` seconds, ``timestamp``
+Observations: a dict camera name -> (H, W, 3) uint8; with ``EnvConfig.lidar`` also
+``"lidar"`` -> (B, A) float32 range image (metres, 0 where the ray returned nothing) of one
+revolution of the beam model (``EnvConfig.beam_model``, default the scene's) from the LiDAR
+mounted on the ego as recorded at the log's first frame (omnire_serve.lidar). ``info``: ``t`` seconds, ``timestamp``
 microseconds, ``ego`` (pose 4x4, x, y, yaw, speed, steer, accel), ``actors`` (boxes: id,
 class, category, pose 4x4, size), ``route`` (progress s, length, lateral offset, corridor
 widths), ``event`` (None, "collision", "off_corridor", "route_end", "log_end") and
@@ -32,6 +35,10 @@ from gymnasium import spaces
 from omnire_serve.bicycle import BicycleLimits, EgoState, advance, track_waypoints
 from omnire_serve.boxes import footprint, footprint_of, overlap
 from omnire_serve.corridor import Corridor
+from omnire_serve.lidar import range_image
+
+LIDAR_OBSERVATION = "lidar"
+"""The observation key of the LiDAR range image."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,7 +47,9 @@ class EnvConfig:
     observation image (default: the cameras' own); ``action``: "bicycle" or "waypoints"
     (``waypoints`` of them); ``ego_size``: the ego's (length, width, height) box, centred
     on the rig origin; ``end_tolerance``: metres before the route's end that count as
-    reaching it; ``scenario``: the JSON tables of the edits every episode starts with."""
+    reaching it; ``scenario``: the JSON tables of the edits every episode starts with;
+    ``lidar``: add the LiDAR range image to the observations (off by default); ``beam_model``:
+    its rays, as /render_lidar takes them (default: the scene's)."""
 
     cameras: Optional[tuple[str, ...]] = None
     size: Optional[tuple[int, int]] = None
@@ -50,6 +59,8 @@ class EnvConfig:
     ego_size: tuple[float, float, float] = (4.8, 2.0, 1.8)
     end_tolerance: float = 1.0
     scenario: Optional[dict] = None
+    lidar: bool = False
+    beam_model: Optional[dict] = None
 
 
 class DrivingEnv(gym.Env):
@@ -75,10 +86,13 @@ class DrivingEnv(gym.Env):
         unknown = [c for c in self.cameras if c not in cams]
         if unknown:
             raise ValueError(f"EnvConfig.cameras {unknown}: not in the scene; cameras: {list(cams)}")
-        self.observation_space = spaces.Dict({
-            name: spaces.Box(0, 255, (h, w, 3), np.uint8)
-            for name in self.cameras
-            for w, h in [config.size or (cams[name]["width"], cams[name]["height"])]})
+        observed = {name: spaces.Box(0, 255, (h, w, 3), np.uint8)
+                    for name in self.cameras
+                    for w, h in [config.size or (cams[name]["width"], cams[name]["height"])]}
+        self.lidar_shape: Optional[tuple[int, int]] = None
+        if config.lidar:
+            observed[LIDAR_OBSERVATION] = self._lidar_space(meta)
+        self.observation_space = spaces.Dict(observed)
         lim = config.limits
         if config.action == "bicycle":
             self.action_space = spaces.Box(np.array([-lim.max_brake, -lim.max_steer_rate], np.float32),
@@ -90,6 +104,20 @@ class DrivingEnv(gym.Env):
         self.t = 0.0
         self.accel = 0.0
         self._last_obs = None
+
+    def _lidar_space(self, meta: dict) -> spaces.Box:
+        lidar = meta.get("lidar")
+        if lidar is None:
+            raise ValueError("EnvConfig.lidar: the scene recorded no LiDAR")
+        if LIDAR_OBSERVATION in self.cameras:
+            raise ValueError(f"EnvConfig.lidar: a camera is named {LIDAR_OBSERVATION!r}, the LiDAR observation's key")
+        model = self.config.beam_model or lidar["beam_model"]
+        if model is None:
+            raise ValueError("EnvConfig.lidar: the scene has no LiDAR beam model; give EnvConfig.beam_model")
+        self.sensor_to_rig = np.asarray(lidar["sensor_to_rig"], dtype=np.float64)
+        self.lidar_shape = (len(model["elevations_deg"]), int(round(360.0 / model["azimuth_step_deg"])))
+        self.max_range = float(model["max_range"])
+        return spaces.Box(0.0, self.max_range, self.lidar_shape, np.float32)
 
     # ------------------------------------------------------------------ poses
     def rig_pose(self, state: EgoState) -> np.ndarray:
@@ -166,6 +194,10 @@ class DrivingEnv(gym.Env):
         stamp = self.timestamp(self.t)
         images = self.transport.render_rig(self.rig_pose(self.state), stamp, list(self.cameras), self.config.size)
         obs = {n: np.ascontiguousarray(images[n], dtype=np.uint8) for n in self.cameras}
+        if self.lidar_shape is not None:
+            sensor = self.rig_pose(self.state) @ self.sensor_to_rig
+            _, points = self.transport.render_lidar(sensor, stamp, self.config.beam_model)
+            obs[LIDAR_OBSERVATION] = range_image(points, sensor, self.lidar_shape, self.max_range)
         self._last_obs = obs
         return obs, self.transport.actors_at(stamp)
 

@@ -23,12 +23,13 @@ from typing import Optional
 import numpy as np
 import torch
 
-from omnire.api import Camera, Reconstruction, UserError
+from omnire.api import BeamModel, Camera, Reconstruction, UserError, sensor_path
 from omnire.command_api import rig_poses
 from omnire_serve.checks import Limits, image_size, pose_matrix
 from omnire_serve.corridor import Corridor, build_corridor
 from omnire_serve.errors import RequestError
 from omnire_serve.imaging import to_uint8
+from omnire_serve.lidar import SweepPoints, beam_model_from, beam_model_json, render_points
 from omnire_serve.tables import field_of_error, parse_tables
 from omnire_sim import ActorEdit, Scenario, Simulation, Trajectory, Waypoint
 from omnire_sim.edits import Where
@@ -125,6 +126,32 @@ class ServedScene:
         c2w = np.asarray(self.recon.scene.cameras[c].cam_to_world, dtype=np.float64)
         return rig_to_world @ (np.linalg.inv(self.rig[near]) @ c2w[near])
 
+    # ------------------------------------------------------------------ LiDAR
+    @property
+    def has_lidar_sensor(self) -> bool:
+        """The scene recorded LiDAR (so a LiDAR pose on the rig is known)."""
+        return self.recon.scene.lidar is not None
+
+    def lidar_mounted(self, rig_to_world: np.ndarray, seconds: float) -> np.ndarray:
+        """(4, 4) the LiDAR's pose on a rig at ``rig_to_world``: mounted as recorded at the
+        frame nearest to ``seconds`` (as :meth:`mounted` mounts cameras)."""
+        frame = float(np.interp(seconds, self.seconds, np.arange(len(self.seconds))))
+        near = int(np.clip(np.round(frame), 0, len(self.seconds) - 1))
+        sensor = sensor_path(self.recon.scene).at(float(self.recon.scene.frame_timestamps[near]))[0]
+        return rig_to_world @ (np.linalg.inv(self.rig[near]) @ sensor)
+
+    def beam_model(self, value, field: str = "beam_model") -> BeamModel:
+        """A request's beam model (omnire_serve.lidar.beam_model_from), the scene's own by default."""
+        if "lidar" not in self.recon.model.capabilities:
+            raise RequestError("", f"the run's rasterizer {self.recon.model.rasterizer.name!r} cannot render LiDAR "
+                                   "(no 'lidar' capability; omnire plugins lists the ones that can)", 409)
+        lidar = self.recon.scene.lidar
+        default = lidar.beam_model if lidar is not None else None
+        return beam_model_from(value, default, self.limits.max_lidar_rays, field)
+
+    def lidar_features(self) -> list[str]:
+        return ["range", "intensity", "ray_drop"] if self.recon.model.lidar_features is not None else ["range"]
+
     def size_of(self, width, height, c: int, field: str = "") -> tuple[int, int]:
         cam = self.recon.scene.cameras[c]
         return image_size(width, height, (cam.width, cam.height), self.limits, field)
@@ -167,7 +194,19 @@ class ServedScene:
             "ego": {"rig_to_world": np.round(self.rig, 6).tolist()},
             "route": self.corridor.as_json(),
             "actors": actors,
+            "lidar": self._lidar_metadata(),
         }
+
+    def _lidar_metadata(self) -> Optional[dict]:
+        """The scene's LiDAR: its mount on the rig (first frame), its beam model (None when
+        the scene has none: /render_lidar then needs one) and the fields a sweep carries."""
+        scene = self.recon.scene
+        if scene.lidar is None:
+            return None
+        model = scene.lidar.beam_model
+        return {"sensor_to_rig": np.round(self.lidar_mounted(np.eye(4), 0.0), 6).tolist(),
+                "beam_model": None if model is None else beam_model_json(model),
+                "features": self.lidar_features()}
 
     # ------------------------------------------------------------------ simulations
     def simulation(self, scenario: Scenario) -> Simulation:
@@ -195,6 +234,15 @@ class ServedScene:
             full = scenario.resolve_path(p).resolve()
             if not full.is_relative_to(self.assets):
                 raise RequestError(field, f"{p}: outside the assets directory {self.assets}", 403)
+
+    def render_lidar(self, sim: Simulation, sensor_to_world: np.ndarray, seconds: float, model: BeamModel
+                     ) -> SweepPoints:
+        """One revolution of ``model`` of ``sim`` from ``sensor_to_world`` (4, 4) at
+        ``seconds`` (omnire_serve.lidar.render_points)."""
+        t0 = float(self.recon.scene.frame_timestamps[0])
+        stamp = self.start_us + int(round(seconds * 1e6))
+        with self.render_lock, torch.no_grad():
+            return render_points(self.recon, sensor_to_world, sim.time(seconds), t0 + seconds, model, sim, stamp)
 
     def render(self, sim: Simulation, camera: Camera, seconds: float) -> np.ndarray:
         """(H, W, 3) uint8 image of ``sim`` through ``camera`` at ``seconds``."""
@@ -353,6 +401,10 @@ class Episode:
                       size: Optional[tuple[int, int]] = None) -> np.ndarray:
         sim = self.sim
         return self.served.render(sim, self.served.camera(c, cam_to_world, size), seconds)
+
+    def render_lidar(self, sensor_to_world: np.ndarray, seconds: float, model: BeamModel) -> SweepPoints:
+        """The LiDAR at ``sensor_to_world`` (4, 4) with this episode's edits."""
+        return self.served.render_lidar(self.sim, sensor_to_world, seconds, model)
 
     def render_rig(self, rig_to_world: np.ndarray, seconds: float, cameras: list[int],
                    sizes: list[tuple[int, int]]) -> dict[str, np.ndarray]:

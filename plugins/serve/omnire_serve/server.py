@@ -1,7 +1,7 @@
 """The HTTP application of ``omnire serve`` (FastAPI): neurad-studio's closed-loop endpoints
 (``/alive``, ``/start_time``, ``/get_actors``, ``/update_actors``, ``/render_image``) with
 their request and response shapes, and omnire's own (``/metadata``, ``/render_rig``,
-``/actors_at``, ``/scenario``, ``/reset``). docs/closed_loop.md is the reference.
+``/render_lidar``, ``/actors_at``, ``/scenario``, ``/reset``). docs/closed_loop.md is the reference.
 
 Every refusal is JSON ``{"error": {"field": ..., "message": ...}}`` with a 4xx status;
 a failure inside the renderer is a 500 with the same shape; the server keeps serving.
@@ -28,6 +28,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from omnire_serve.errors import RequestError
 from omnire_serve.imaging import FORMATS, encode
+from omnire_serve.lidar import FORMATS as LIDAR_FORMATS
+from omnire_serve.lidar import encode_points
 from omnire_serve.served import Episode, ServedScene
 
 SESSION_HEADER = "X-Omnire-Session"
@@ -197,12 +199,15 @@ def create_app(served: ServedScene, token: Optional[str] = None) -> FastAPI:
     async def metadata():
         return JSONResponse(await run_in_threadpool(served.metadata))
 
-    @app.post("/render_rig")
-    async def render_rig(request: Request):
+    async def posed(request: Request) -> tuple[Episode, Any, Any, float]:
+        """(episode, body, checked 4x4 ``pose``, seconds of ``timestamp``) of a render request."""
         episode = sessions.get(request)
         data = await _body(request)
-        rig = served.pose(_field(data, "pose"), "pose")
-        seconds = served.seconds_at(_field(data, "timestamp"))
+        return episode, data, served.pose(_field(data, "pose"), "pose"), served.seconds_at(_field(data, "timestamp"))
+
+    @app.post("/render_rig")
+    async def render_rig(request: Request):
+        episode, data, rig, seconds = await posed(request)
         names = _field(data, "cameras", None)
         if names is None:
             cams = list(range(len(served.camera_names)))
@@ -223,6 +228,21 @@ def create_app(served: ServedScene, token: Optional[str] = None) -> FastAPI:
         response = JSONResponse({"timestamp": data["timestamp"], "images": out})
         response.headers.update(server_timing(rendered - clock, time.perf_counter() - rendered))
         return response
+
+    @app.post("/render_lidar")
+    async def render_lidar(request: Request):
+        episode, data, pose, seconds = await posed(request)
+        model = served.beam_model(_field(data, "beam_model", None))
+        fmt = _field(data, "format", "npz")
+        if fmt not in LIDAR_FORMATS:
+            raise RequestError("format", f"{fmt!r}: expected one of {list(LIDAR_FORMATS)}")
+        rays = model.num_beams * model.num_azimuths
+        if fmt == "json" and rays > served.limits.max_json_rays:
+            raise RequestError("format", f"a sweep of {rays} rays is too large for JSON (at most "
+                                         f"{served.limits.max_json_rays}); ask for npz", 413)
+        points = await run_in_threadpool(episode.render_lidar, pose, seconds, model)
+        content, media = encode_points(points, fmt)
+        return Response(content=content, media_type=media)
 
     @app.post("/actors_at")
     async def actors_at(request: Request):

@@ -1,7 +1,7 @@
 """How the environment reaches the scene: in the same process (:class:`LocalTransport`,
 an :class:`~omnire_serve.served.Episode` of a ServedScene) or through ``omnire serve``
 (:class:`HttpTransport`, an :class:`~omnire_serve.client.OmnireClient`). Both offer the same
-five calls with the same values, so the environment does not know which it has."""
+six calls with the same values, so the environment does not know which it has."""
 from __future__ import annotations
 
 from typing import Optional, Sequence
@@ -43,6 +43,13 @@ class LocalTransport(_SessionTransport):
         sizes = [s.size_of(*(size or (None, None)), c) for c in cams]
         return self.session.render_rig(pose, s.seconds_at(timestamp), cams, sizes)
 
+    def render_lidar(self, sensor_to_world: np.ndarray, timestamp: int, beam_model: Optional[dict]
+                     ) -> tuple[dict, dict[str, np.ndarray]]:
+        s = self.served
+        points = self.session.render_lidar(s.pose(sensor_to_world, "pose"), s.seconds_at(timestamp),
+                                           s.beam_model(beam_model))
+        return points.meta(), points.arrays()
+
     def actors_at(self, timestamp: int) -> list[dict]:
         return [b.as_json() for b in self.session.boxes_at(self.served.seconds_at(timestamp))]
 
@@ -56,6 +63,10 @@ class HttpTransport(_SessionTransport):
     def render_rig(self, rig_to_world: np.ndarray, timestamp: int, cameras: Sequence[str],
                    size: Optional[tuple[int, int]]) -> dict[str, np.ndarray]:
         return self.session.render_rig(rig_to_world, timestamp, cameras, size, image_format="raw")
+
+    def render_lidar(self, sensor_to_world: np.ndarray, timestamp: int, beam_model: Optional[dict]
+                     ) -> tuple[dict, dict[str, np.ndarray]]:
+        return self.session.render_lidar(sensor_to_world, timestamp, beam_model, fmt="npz")
 
     def actors_at(self, timestamp: int) -> list[dict]:
         return self.session.actors_at(timestamp)

@@ -1,7 +1,7 @@
 """Fixtures of the closed-loop tests: one tiny trained run of the whole demo log (streetgs,
 quarter size, two steps: the route, the actors and the LiDAR of the real log, Gaussians
 barely trained) and real ``omnire serve`` processes on free ports, one without and one with
-a token."""
+a token; the same run with LiDAR features learned, and a server of it."""
 from __future__ import annotations
 
 import os
@@ -43,6 +43,48 @@ def serve_run(tmp_path_factory, plugins):
             "--trainer.threads", "1", "--trainer.output-dir", str(root), "--trainer.run-name", "demo"]
     Trainer(parse_train_args(argv, plugins), plugins, argv=argv).train()
     return root / "demo"
+
+
+@pytest.fixture(scope="session")
+def lidar_run(tmp_path_factory, plugins):
+    """The run of :func:`serve_run` with LiDAR features learned (--method.lidar.enabled)."""
+    if not DEMO_SCENE.is_dir():
+        pytest.skip("demo scene (data/demo/pandaset_002) not in this checkout")
+    from omnire.runconfig import parse_train_args
+    from omnire.trainer import Trainer
+
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("serve-lidar-runs")
+    argv = ["streetgs", "pandaset", "--data", str(DEMO_SCENE), "--holdout-every", "0", "--scale", "0.25",
+            "--method.nodes.background.max-lidar-points", "3000", "--method.nodes.background.num-far-points", "300",
+            "--trainer.max-steps", "2", "--trainer.no-progress", "--trainer.eval-train-views", "1",
+            "--trainer.threads", "1", "--trainer.output-dir", str(root), "--trainer.run-name", "demo",
+            "--method.lidar.enabled", "--method.lidar.rays-per-step", "4000"]
+    Trainer(parse_train_args(argv, plugins), plugins, argv=argv).train()
+    return root / "demo"
+
+
+@pytest.fixture(scope="session")
+def lidar_server(lidar_run):
+    """A server of :func:`lidar_run`."""
+    from omnire_serve.process import ServerProcess
+
+    server = ServerProcess(lidar_run, ["--threads", "1"], clean_env(), lidar_run.parent / "serve.log")
+    try:
+        yield server.wait_ready()
+    finally:
+        code, _ = server.stop()
+        assert code == 0, f"omnire serve exited {code} on SIGTERM"
+
+
+@pytest.fixture(scope="session")
+def lidar_served(lidar_run, plugins):
+    """:func:`lidar_run` served in this process."""
+    from omnire.api import Reconstruction
+    from omnire_serve.served import ServedScene
+
+    torch.set_num_threads(1)
+    return ServedScene(Reconstruction.from_run(lidar_run, plugins), plugins)
 
 
 @pytest.fixture(scope="session")

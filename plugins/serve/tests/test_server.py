@@ -14,7 +14,7 @@ import pytest
 import torch
 from PIL import Image
 
-from serve_helpers import OMNIRE, TOKEN, clean_env
+from serve_helpers import OMNIRE, TOKEN, clean_env, hostile_request
 from hostile import record
 
 WHITE_CAR = "8ac00bad-822c-4040-b9a2-31424dbcd486"
@@ -119,18 +119,6 @@ def test_pixels_equal_omnire_sim(server, served, serve_run, tmp_path):
         assert np.array_equal(got, want), name
 
 
-def _hostile(client: httpx.Client, name: str, method: str, path: str, field: str, status: int, **kw) -> None:
-    r = client.request(method, path, **kw)
-    try:
-        body = r.json()
-        err = body["error"]
-        ok = r.status_code == status and err["field"] == field and err["message"]
-    except (ValueError, KeyError, TypeError):
-        ok, body = False, r.text
-    record("serve", name, exit=r.status_code, traceback=None if r.status_code < 500 else r.text, wrong=not ok)
-    assert ok, f"{name}: {r.status_code} {body}"
-
-
 def test_bad_requests_answer_json_and_the_server_goes_on(servers, served):
     server, guarded = servers
     client = httpx.Client(base_url=server.url, timeout=300)
@@ -158,12 +146,12 @@ def test_bad_requests_answer_json_and_the_server_goes_on(servers, served):
         ("unknown endpoint", "GET", "/nothing", "path", 404, {}),
     ]
     for name, method, path, field, status, kw in cases:
-        _hostile(client, name, method, path, field, status, **kw)
+        hostile_request(client, name, method, path, field, status, **kw)
         r = client.post("/render_image", json=good)  # the next good request still works
         assert r.status_code == 200 and r.headers["content-type"] == "image/png", name
     unauth = httpx.Client(base_url=guarded.url, timeout=300)
-    _hostile(unauth, "missing token", "POST", "/render_image", "Authorization", 401, json=good)
-    _hostile(unauth, "wrong token", "GET", "/alive", "Authorization", 401, headers={"Authorization": "Bearer nope"})
+    hostile_request(unauth, "missing token", "POST", "/render_image", "Authorization", 401, json=good)
+    hostile_request(unauth, "wrong token", "GET", "/alive", "Authorization", 401, headers={"Authorization": "Bearer nope"})
     r = unauth.post("/render_image", json=good, headers={"Authorization": f"Bearer {TOKEN}"})
     assert r.status_code == 200
 
