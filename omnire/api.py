@@ -83,7 +83,6 @@ from omnire.lidar_baselines import (
     sweep_triangles,
 )
 from omnire.lidar_metrics import BOX_CATEGORIES, Box, RenderedSweep, boxes_at, lidar_metrics, mean_metrics
-from omnire.lidar_rays import SweepRays, lidar_track, scene_sweep_rays, sweep_rays
 from omnire.lidarmodel import LIDAR_KEY, LidarConfig, LidarRender
 from omnire.lidarpoints import POINT_FIELDS, sweep_points, write_point_cloud
 from omnire.lidarprojection import (
@@ -96,13 +95,14 @@ from omnire.lidarprojection import (
 )
 from omnire.lidarsweep import (
     SensorPath,
-    SensorRays,
+    SweepRays,
     beam_model_sweep,
     fixed_path,
     recorded_sweep,
     sectors_of,
     sensor_path,
     shifted_path,
+    sweep_rays,
 )
 from omnire.limits import (
     DEFAULT_FRAME_CAP,

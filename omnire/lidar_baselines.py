@@ -27,7 +27,7 @@ from omnire.beams import spherical
 from omnire.data.scene import BeamModel, SceneData, SceneDataError
 from omnire.interpolation import interpolate_poses
 from omnire.lidar_metrics import RenderedSweep, boxes_at, lidar_metrics, mean_metrics
-from omnire.lidar_rays import SweepRays, lidar_track, scene_sweep_rays
+from omnire.lidarsweep import SweepRays, recorded_sweep, sensor_path
 from omnire.raycast import first_hits
 
 
@@ -232,21 +232,21 @@ def baseline_metrics(scene: SceneData, test_frames: Sequence[int], train_frames:
     tests = [f for f in test_frames if f in have]
     if not len(train) or not tests:
         raise SceneDataError(f"scene {scene.name}: no training or held-out frame with LiDAR")
-    known, poses = lidar_track(lidar, scene.frame_timestamps)
+    path = sensor_path(scene)
     rays: dict[int, SweepRays] = {}
 
     def rays_of(f: int) -> SweepRays:
         if f not in rays:
-            rays[f] = scene_sweep_rays(lidar, scene.frame_timestamps, f)
+            rays[f] = recorded_sweep(scene, f, grid_only=True)
         return rays[f]
 
     scores: dict[str, list[dict]] = {"nearest_sweep": [], "mesh": []}
     for f in tests:
-        target = scene_sweep_rays(lidar, scene.frame_timestamps, f)
+        target = recorded_sweep(scene, f, grid_only=True)
         boxes = boxes_at(scene, f)
         by_distance = train[np.argsort(np.abs(train - f), kind="stable")]  # ties: the earlier frame
         points, value = sensor_returns(scene, int(by_distance[0]))
-        rendered = nearest_sweep_render(points, value, target, known, poses, max_angle_deg)
+        rendered = nearest_sweep_render(points, value, target, path.times, path.poses, max_angle_deg)
         scores["nearest_sweep"].append(lidar_metrics(rendered, target, boxes))
         if model is not None:
             chosen = by_distance[:mesh_sweeps] if mesh_sweeps > 0 else by_distance

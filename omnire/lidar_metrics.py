@@ -1,6 +1,6 @@
 """Scores of a rendered LiDAR sweep against the recorded one, ray by ray (docs/lidar.md,
 "Evaluation"). The renderer answers every ray of the recorded sweep
-(:class:`~omnire.lidar_rays.SweepRays`) with a range, an intensity and a ray-drop
+(:class:`~omnire.lidarsweep.SweepRays`) with a range, an intensity and a ray-drop
 probability (:class:`RenderedSweep`); plain arrays, so any renderer (the Gaussians, the
 baselines of :mod:`omnire.lidar_baselines`) is scored the same way.
 """
@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from omnire.data.scene import SceneData, SceneDataError
-from omnire.lidar_rays import SweepRays
+from omnire.lidarsweep import SweepRays
 from omnire.metrics import chamfer_distance
 from omnire.pointcloud import points_in_box
 

@@ -7,7 +7,7 @@
   was recorded;
 - ``lidar_ray_drop``: binary cross-entropy of the rendered ray-drop probability against
   "this ray returned nothing", over every ray, only when the sweep's missing returns are
-  known (:attr:`omnire.lidarsweep.SensorRays.drops_known`); otherwise the returned rays alone
+  known (:attr:`omnire.lidarsweep.SweepRays.drops_known`); otherwise the returned rays alone
   would teach that nothing ever drops.
 
 A term whose rays are absent (or whose weight is 0) is left out.
@@ -19,10 +19,10 @@ import torch
 import torch.nn.functional as F
 
 from omnire.lidarmodel import LidarConfig, LidarRender
-from omnire.lidarsweep import SensorRays
+from omnire.lidarsweep import SweepRays
 
 
-def lidar_loss_terms(render: LidarRender, sweep: SensorRays, config: LidarConfig) -> dict[str, torch.Tensor]:
+def lidar_loss_terms(render: LidarRender, sweep: SweepRays, config: LidarConfig) -> dict[str, torch.Tensor]:
     """Weighted LiDAR loss terms (name -> scalar) of ``render`` (R rays) against ``sweep``
     (the same R rays, in the same order)."""
     if len(render.range) != len(sweep):

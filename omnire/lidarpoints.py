@@ -20,13 +20,13 @@ import torch
 
 from omnire.io.atomic import atomic_write_bytes
 from omnire.lidarmodel import LidarRender
-from omnire.lidarsweep import SensorPath, SensorRays, sectors_of
+from omnire.lidarsweep import SensorPath, SweepRays, sectors_of
 
 POINT_FIELDS = (("x", "f4"), ("y", "f4"), ("z", "f4"), ("intensity", "f4"), ("time", "f8"), ("beam", "i2"))
 """Point-cloud fields and their numpy types, in file order."""
 
 
-def sweep_points(render: LidarRender, sweep: SensorRays, path: SensorPath, sectors: int) -> np.ndarray:
+def sweep_points(render: LidarRender, sweep: SweepRays, path: SensorPath, sectors: int) -> np.ndarray:
     """The returning rays of ``render`` (rendered by ``Reconstruction.render_sweep(sweep,
     path, sectors)``) as a structured (P,) array of :data:`POINT_FIELDS`."""
     pose = np.zeros((len(sweep), 4, 4))
@@ -35,7 +35,7 @@ def sweep_points(render: LidarRender, sweep: SensorRays, path: SensorPath, secto
     drop = render.ray_drop.detach().cpu().numpy()
     keep = drop < 0.5
     rng = render.range.detach().cpu().numpy().astype(np.float64)[keep]
-    local = sweep.directions()[keep] * rng[:, None]
+    local = sweep.local_directions[keep] * rng[:, None]
     world = np.einsum("nij,nj->ni", pose[keep, :3, :3], local) + pose[keep, :3, 3]
     out = np.zeros(int(keep.sum()), dtype=list(POINT_FIELDS))
     out["x"], out["y"], out["z"] = world[:, 0], world[:, 1], world[:, 2]

@@ -16,7 +16,7 @@ import torch
 
 from omnire.lidarloss import lidar_loss_terms
 from omnire.lidarmodel import LidarConfig
-from omnire.lidarsweep import SensorRays, recorded_sweep, sensor_path
+from omnire.lidarsweep import SweepRays, recorded_sweep, sensor_path
 
 if TYPE_CHECKING:
     from omnire.runtime import Reconstruction
@@ -38,20 +38,20 @@ class LidarTraining:
         self.frames = np.array([int(f) for f in scene.train_frames if scene.lidar.points[int(f)] is not None])
         self.path = sensor_path(scene)
         self.sampler = torch.Generator().manual_seed(seed)
-        self._sweeps: dict[int, SensorRays] = {}
+        self._sweeps: dict[int, SweepRays] = {}
         if len(self.frames) == 0:
             log.warning("LiDAR rendering is on but no training frame has LiDAR: no LiDAR loss")
         elif not self.sweep(int(self.frames[0])).drops_known:
             log.info("LiDAR: the scene's sweeps have no beams, so their missing returns are unknown: "
                      "no ray-drop loss (range and intensity only)")
 
-    def sweep(self, frame: int) -> SensorRays:
+    def sweep(self, frame: int) -> SweepRays:
         """The recorded sweep of ``frame`` (read once)."""
         if frame not in self._sweeps:
             self._sweeps[frame] = recorded_sweep(self.recon.scene, frame)
         return self._sweeps[frame]
 
-    def sample(self, rays_per_step: int) -> SensorRays:
+    def sample(self, rays_per_step: int) -> SweepRays:
         """A random training frame's sweep, cut to ``rays_per_step`` random rays (0: all)."""
         frame = int(self.frames[int(torch.randint(len(self.frames), (1,), generator=self.sampler))])
         sweep = self.sweep(frame)

@@ -40,7 +40,7 @@ from omnire.nodes.actors import ActorNode, ActorState
 from omnire.nodes.base import EnvironmentNode, Node, NodeOutput
 from omnire.gaussians import Gaussians
 from omnire.lidarmodel import LidarRender
-from omnire.lidarsweep import SensorPath, SensorRays, sectors_of
+from omnire.lidarsweep import SensorPath, SweepRays, sectors_of
 from omnire.rasterization import Rasterizer, describe_paths, select_backend
 from omnire.rundir import RunDirectory, RunInfo, find_checkpoint
 from omnire.runconfig import TrainConfig, parse_train_args
@@ -438,10 +438,10 @@ class Reconstruction:
         return self.model.render_lidar([(d.node, out) for d, (_, out) in zip(drawn, outputs)], rays, settings,
                                        geometry_only)
 
-    def render_sweep(self, sweep: SensorRays, path: SensorPath, sectors: int = 1, step: Optional[int] = None,
+    def render_sweep(self, sweep: SweepRays, path: SensorPath, sectors: int = 1, step: Optional[int] = None,
                      hidden: Collection[str] = frozenset(), edits: Optional[ActorEdits] = None,
                      settings: Optional[LidarSettings] = None) -> LidarRender:
-        """Render a sweep's rays (:class:`~omnire.lidarsweep.SensorRays`, in the order given)
+        """Render a sweep's rays (:class:`~omnire.lidarsweep.SweepRays`, in the order given)
         from the sensor poses ``path`` gives at their times, in ``sectors`` equal time spans
         (rolling shutter: each span's rays see the scene, and are cast from the sensor, at the
         span's middle time; :func:`~omnire.lidarsweep.sectors_of`)."""

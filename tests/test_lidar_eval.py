@@ -1,4 +1,4 @@
-"""The rays of a recorded sweep (omnire.lidar_rays), the metrics of a rendered sweep against
+"""The rays of a recorded sweep (omnire.lidarsweep), the metrics of a rendered sweep against
 it (omnire.lidar_metrics, each against a brute-force computation), and the two baselines
 (omnire.lidar_baselines) on scenes of planes whose sweeps have exact answers."""
 from __future__ import annotations
@@ -14,7 +14,7 @@ from omnire.interpolation import bracket, extend_poses, interpolate_poses, inter
 from omnire.lidar_baselines import (baseline_metrics, cell_tolerance_deg, lidar_mesh, mesh_render,
                                     nearest_sweep_render, sweep_triangles)
 from omnire.lidar_metrics import Box, RenderedSweep, boxes_at, lidar_metrics, mean_metrics
-from omnire.lidar_rays import scene_sweep_rays, sweep_rays
+from omnire.lidarsweep import recorded_sweep, sweep_rays
 from omnire.metrics import chamfer_distance
 from omnire.raycast import first_hits
 
@@ -285,11 +285,11 @@ def test_baseline_metrics_of_a_scene():
         tracks=[ActorTrack("car", "Car", "vehicle", np.repeat(box[None], 6, 0), np.array([4.0, 2.0, 3.0]),
                            np.ones(6, bool))])
     got = baseline_metrics(scene, scene.test_frames, scene.train_frames)
-    target = scene_sweep_rays(scene.lidar, scene.frame_timestamps, 2)
+    target = recorded_sweep(scene, 2, grid_only=True)
     boxes = boxes_at(scene, 2)
     known, track_poses = extend_poses(times[1:], poses[1:], 0.2)
     near = nearest_sweep_render(pts[1], scene.lidar.intensity[1], target, known, track_poses, cell_tolerance_deg(MODEL))
-    mesh = lidar_mesh([scene_sweep_rays(scene.lidar, scene.frame_timestamps, g) for g in (1, 3, 0, 4)], MODEL)
+    mesh = lidar_mesh([recorded_sweep(scene, g, grid_only=True) for g in (1, 3, 0, 4)], MODEL)
     for name, rendered in (("nearest_sweep", near), ("mesh", mesh_render(mesh, target))):
         expect = lidar_metrics(rendered, target, boxes)
         assert got[name].keys() == expect.keys()

@@ -118,7 +118,7 @@ def test_recorded_sweep_knows_the_missing_returns(lidar_scene):
     truth = cast(lidar_scene.lidar.sensor_to_world[frame])
     assert sweep.drops_known and len(sweep) == len(truth.range) == BEAMS.num_beams * BEAMS.num_azimuths
     assert int(sweep.returned.sum()) == int(truth.returned.sum())
-    back = sweep.directions()[sweep.returned] * sweep.range[sweep.returned, None]
+    back = sweep.local_directions[sweep.returned] * sweep.range[sweep.returned, None]
     np.testing.assert_allclose(np.sort(np.linalg.norm(back, axis=1)), np.sort(truth.range[truth.returned]),
                                atol=1e-4)
 

@@ -76,7 +76,7 @@ def test_a_removed_cars_points_vanish(lidar_street):
     text = '[[actor]]\ntrack = "car-2"\nremove = true\n'
     before, sweep = rendered(lidar_street, "")
     after, _ = rendered(lidar_street, text)
-    ray_points = sweep.directions() * before.range.numpy()[:, None] + SENSOR[:3, 3]
+    ray_points = sweep.local_directions * before.range.numpy()[:, None] + SENSOR[:3, 3]
     met = (before.ray_drop.numpy() < 0.5) & in_box(ray_points, CAR2_CENTRE, CAR2_SIZE, 0.0, above_ground=0.3)
     further = (after.ray_drop.numpy() >= 0.5) | (after.range.numpy() > before.range.numpy() + 0.5)
     assert met.sum() > 50 and further[met].all()
@@ -115,7 +115,7 @@ def test_an_inserted_actor_casts_points_on_its_box(lidar_street, plugins, tmp_pa
     guest, _ = rendered(recon_b, text, assets={run_a: lidar_street})
     r0, r1 = plain.median_range.numpy(), guest.median_range.numpy()
     hit = (guest.ray_drop.numpy() < 0.5) & (guest.alpha.numpy() - plain.alpha.numpy() > 0.3) & (r1 < r0 - 0.05)
-    on = in_box(sweep.directions()[hit] * r1[hit, None] + SENSOR[:3, 3], centre, size)
+    on = in_box(sweep.local_directions[hit] * r1[hit, None] + SENSOR[:3, 3], centre, size)
     assert hit.sum() > 20 and on.mean() > 0.95, f"{on.mean():.3f} of {hit.sum()} new returns on the box"
 
 
