@@ -209,6 +209,7 @@ def lowpass_conics(cov2d: torch.Tensor, eps: float, valid: torch.Tensor
     return torch.stack([c / det_safe, -b / det_safe, a / det_safe], -1), torch.stack([a, c], -1), det, ok
 
 
+@numpy_compatible
 def quat_to_se3(q: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """(..., 4) wxyz rotations (normalised here, as in :func:`quat_to_rotmat`) and (..., 3)
     translations -> (..., 4, 4) rigid transforms x -> R(q) x + t."""
