@@ -22,7 +22,7 @@ from omnire.exposure import ExposureCompensation
 from omnire.gaussians import Gaussians
 from omnire.lidarmodel import LidarRender, activate, decode, lidar_features_for
 from omnire.nodes.base import EnvironmentNode, Node, NodeContext, NodeOutput
-from omnire.rasterization import Rasterizer, RasterSettings, Splats
+from omnire.rasterization import LidarSettings, Rasterizer, RasterSettings, Splats
 from omnire.strategy import NodeSlice
 
 
@@ -353,8 +353,6 @@ class SceneModel(nn.Module):
         ``geometry_only``: ignore learned features (and allow a scene that learned none): the
         range is rendered, intensity is NaN and the ray-drop probability is 1 - alpha (a ray
         returns what it meets, nothing else drops)."""
-        from omnire.rasterization import LidarSettings
-
         if self.lidar_features is None and not geometry_only:
             raise UserError("this scene learned no LiDAR features: train it with --method.lidar.enabled on a "
                             "scene with LiDAR to render LiDAR")
@@ -363,11 +361,12 @@ class SceneModel(nn.Module):
             if out is None or out.num_gaussians == 0:
                 continue
             g = out.gaussians
-            features = None if geometry_only else node.lidar_features(out)
             if geometry_only:
                 features = g.means.new_zeros(len(g), 1)
-            elif features is None:
-                features = self.lidar_features.initial(len(g), g.means.device, g.means.dtype)
+            else:
+                features = node.lidar_features(out)
+                if features is None:
+                    features = self.lidar_features.initial(len(g), g.means.device, g.means.dtype)
             for key, value in (("means", g.means), ("quats", g.quats), ("scales", g.scales),
                                ("opacities", g.opacities), ("f", features)):
                 columns[key].append(value)
