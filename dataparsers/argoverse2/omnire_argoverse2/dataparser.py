@@ -23,11 +23,13 @@ import numpy as np
 
 from omnire.api import (
     ActorTrack, CameraSequence, Dataparser, LidarSweeps, LogDataparserConfig, STATIONARY_THRESHOLD,
-    SceneData, first_pose_world, frame_range, image_size, is_stationary, loaded_camera, majority_label,
-    resample_track, thin_points,
+    SceneData, extend_poses, first_pose_world, frame_range, image_size, is_stationary, loaded_camera,
+    majority_label, resample_track, thin_points,
 )
 from omnire_argoverse2 import log as av2
+from omnire_argoverse2 import vlp32c
 from omnire_argoverse2.log import Av2LogError
+from omnire_argoverse2.vlp32c import laser_elevations
 
 ATTRIBUTION = (
     '"Argoverse 2: Next Generation Datasets for Self-Driving Perception and Forecasting", Wilson et al., '
@@ -169,10 +171,12 @@ def load_lidar(paths: list[Path], frame_ns: np.ndarray, ego_to_world: np.ndarray
         ego_to_world: (F, 4, 4) ego pose at each sweep time; lidar_to_ego: (4, 4) up_lidar
             extrinsics (its pose at each sweep time is the sweep's ``sensor_to_world``).
         max_points: thin each sweep to at most this many points (seeded by its timestamp); 0 keeps all.
-    Two VLP-32C (``laser_number`` 0-31 and 32-63) each with its own pose make one sweep, so
-    no single beam model describes it: ``beams`` stays None.
+    Two VLP-32C (``laser_number`` 0-31 and 32-63) each with its own pose make one sweep:
+    ``up_lidar``'s lasers are the beams (omnire_argoverse2/vlp32c.py), ``down_lidar``'s
+    returns have beam -1. Sweeps whose laser numbers do not show the VLP-32C's angles get no
+    beams.
     """
-    points, intensity, times = [], [], []
+    points, intensity, times, lasers = [], [], [], []
     for path, ts, M in zip(paths, frame_ns, ego_to_world):
         sweep = av2.read_sweep(path)
         keep = thin_points(np.arange(len(sweep.xyz)), max_points, ts)
@@ -183,9 +187,17 @@ def load_lidar(paths: list[Path], frame_ns: np.ndarray, ego_to_world: np.ndarray
             raise Av2LogError(f"{path}: column intensity must hold numbers in 0..255")
         intensity.append((value / 255.0).astype(np.float32))
         times.append((int(ts) + np.asarray(sweep.offset_ns, dtype=np.int64)[keep]) * 1e-9)
+        lasers.append(np.asarray(sweep.laser_number)[keep])
     sensor_to_world = ego_to_world @ lidar_to_ego[None]  # (F, 4, 4), axes x forward, y left, z up
+    # the sweeps start at their timestamp and last one revolution: extrapolate the track past the last one
+    track = extend_poses(np.asarray(frame_ns, dtype=np.int64) * 1e-9, sensor_to_world, 0.2)
+    first = slice(0, min(3, len(points)))  # three sweeps hold thousands of returns per laser
+    elevations = laser_elevations(np.concatenate(points[first]).astype(np.float64), np.concatenate(times[first]),
+                                  np.concatenate(lasers[first]), *track) if points else None
     return LidarSweeps(points=points, origins=sensor_to_world[:, :3, 3].copy(), intensity=intensity, times=times,
-                       sensor_to_world=sensor_to_world)
+                       sensor_to_world=sensor_to_world,
+                       beams=None if elevations is None else [vlp32c.beams_of(k) for k in lasers],
+                       beam_model=None if elevations is None else vlp32c.beam_model(elevations))
 
 
 def load_tracks(ann: av2.Annotations, path: Path, frame_ns: np.ndarray, ego: av2.EgoPoses, world: np.ndarray,

@@ -7,8 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from omnire.api import SceneDataError, first_pose_world, loaded_intrinsics
+from omnire.api import (
+    SceneDataError, extend_poses, first_pose_world, loaded_intrinsics, points_in_sensor_frame, range_image, spherical,
+)
 from omnire_argoverse2 import log as av2
+from omnire_argoverse2 import vlp32c
 from omnire_argoverse2.dataparser import Argoverse2Config, Argoverse2Dataparser, load_lidar, load_tracks
 
 AV2 = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "av2" / "sensor"
@@ -196,4 +199,34 @@ def test_reader_carries_intensity_times_and_sensor_pose():
         assert dt.min() >= sweep.offset_ns.min() * 1e-9 - 1e-6 and dt.max() <= sweep.offset_ns.max() * 1e-9 + 1e-6
         assert 0.05 < sweep.offset_ns.max() * 1e-9 - sweep.offset_ns.min() * 1e-9 < 0.12  # one revolution at 10 Hz
         np.testing.assert_allclose(lidar.sensor_to_world[f], world @ city_ego[f] @ up, atol=1e-9)
-    assert lidar.beams is None and lidar.beam_model is None
+
+
+def test_up_lidar_lasers_are_the_vlp32c_datasheet_angles():
+    """Each up_lidar laser number gets a datasheet angle of its own; in the sensor frame at
+    their own time 99% of its returns lie within 0.1 degrees of it (measured 99.9-100%), the
+    down_lidar's returns are beam -1, and the range image of a sweep is mostly returned."""
+    ns, paths, ego, city_ego, world = _frames(LOG_B)
+    up = av2.read_sensor_poses(LOG_B)[av2.LIDAR_SENSOR]
+    lidar = load_lidar(paths, ns, world[None] @ city_ego, up)
+    model = lidar.beam_model
+    assert model.num_beams == 32 and model.num_azimuths == 1800
+    np.testing.assert_array_equal(np.sort(model.elevations_deg), vlp32c.DATASHEET_ELEVATIONS_DEG)
+    track = extend_poses(ns * 1e-9, lidar.sensor_to_world, 0.2)
+    for f, path in enumerate(paths):
+        lasers = av2.read_sweep(path).laser_number.astype(int)
+        beams = lidar.beams[f]
+        np.testing.assert_array_equal(beams, np.where(lasers < 32, lasers, -1))
+        mine = beams >= 0
+        rng, az, el = spherical(points_in_sensor_frame(lidar.points[f][mine].astype(np.float64),
+                                                       lidar.times[f][mine], *track))
+        assert np.mean(np.abs(el - model.elevations_deg[beams[mine]]) < 0.1) > 0.99
+        assert range_image(rng, az, beams[mine], model).returned.mean() > 0.8
+
+
+def test_sweeps_without_laser_numbers_get_no_beams():
+    """A sweep whose returns do not show the 32 angles (every laser number 0) has no beams."""
+    ns, paths, ego, city_ego, world = _frames(LOG_B)
+    points = [np.asarray(av2.read_sweep(p).xyz, np.float64) for p in paths]
+    times = [np.full(len(p), t * 1e-9) for p, t in zip(points, ns)]
+    sensor = world[None] @ city_ego @ av2.read_sensor_poses(LOG_B)[av2.LIDAR_SENSOR][None]
+    assert vlp32c.laser_elevations(points[0], times[0], np.zeros(len(points[0]), np.uint8), ns * 1e-9, sensor) is None
