@@ -1884,11 +1884,15 @@ std::vector<at::Tensor> ssim_forward(at::Tensor a, at::Tensor b, at::Tensor wind
 at::Tensor ssim_backward(at::Tensor a, at::Tensor b, at::Tensor window, at::Tensor stats, at::Tensor g_map,
                          int64_t nthreads);
 
+// The kernels touch no Python object: the GIL is released while they run, so renders of
+// several cameras in threads (a rig) overlap their kernels.
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("forward", &raster_forward, "Gaussian rasterization forward (CPU)");
-  m.def("backward", &raster_backward, "Gaussian rasterization backward (CPU)");
-  m.def("forward_train", &raster_forward_train, "forward from raw Gaussian groups (CPU; training and inference)");
-  m.def("backward_train", &raster_backward_train, "training backward to raw Gaussian groups (CPU)");
-  m.def("ssim_forward", &ssim_forward, "SSIM map of two images (CPU)");
-  m.def("ssim_backward", &ssim_backward, "gradient of the SSIM map w.r.t. the first image (CPU)");
+  using nogil = pybind11::call_guard<pybind11::gil_scoped_release>;
+  m.def("forward", &raster_forward, "Gaussian rasterization forward (CPU)", nogil());
+  m.def("backward", &raster_backward, "Gaussian rasterization backward (CPU)", nogil());
+  m.def("forward_train", &raster_forward_train, "forward from raw Gaussian groups (CPU; training and inference)",
+        nogil());
+  m.def("backward_train", &raster_backward_train, "training backward to raw Gaussian groups (CPU)", nogil());
+  m.def("ssim_forward", &ssim_forward, "SSIM map of two images (CPU)", nogil());
+  m.def("ssim_backward", &ssim_backward, "gradient of the SSIM map w.r.t. the first image (CPU)", nogil());
 }
