@@ -27,9 +27,10 @@ from __future__ import annotations
 
 import copy
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from time import perf_counter
-from typing import TYPE_CHECKING, Collection, Iterable, Iterator, Mapping, Optional, Protocol
+from typing import TYPE_CHECKING, Collection, Iterable, Iterator, Mapping, Optional, Protocol, Sequence
 
 import torch
 
@@ -163,6 +164,7 @@ class Reconstruction:
         # cameras as tensors on the device, converted once
         self._K = [torch.as_tensor(c.intrinsics, dtype=torch.float32, device=self.device) for c in scene.cameras]
         self._c2w = [torch.as_tensor(c.cam_to_world, dtype=torch.float32, device=self.device) for c in scene.cameras]
+        self._side_by_side: Optional[ThreadPoolExecutor] = None  # render_cameras' workers, made at first use
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -421,6 +423,33 @@ class Reconstruction:
         result = self.render_outputs(parts, camera, time, step, sh_degree, hidden)
         result.timings["nodes"] = seconds
         return result
+
+    def render_cameras(self, cameras: Sequence[Camera], time: SceneTime, **options) -> list[RenderResult]:
+        """:meth:`render` (with ``options``) through each of ``cameras`` at one ``time``: a
+        rig's cameras, the same results as one at a time.
+
+        Without autograd and with two torch threads or more, the first camera renders with
+        every thread (leaving the moment's actor outputs cached for the others) and the rest
+        then render side by side, one thread each: on few cores whole renders side by side
+        scale better than the threads of one render, whose small torch operations wait on each
+        other. Grad mode is per thread, so the workers turn it off too."""
+        cameras = list(cameras)
+        threads = torch.get_num_threads()
+        if len(cameras) < 2 or threads < 2 or torch.is_grad_enabled():
+            return [self.render(c, time, **options) for c in cameras]
+        first = self.render(cameras[0], time, **options)
+        if self._side_by_side is None:
+            self._side_by_side = ThreadPoolExecutor(threads, thread_name_prefix="omnire-render")
+
+        def render_without_grad(camera: Camera) -> RenderResult:
+            with torch.no_grad():
+                return self.render(camera, time, **options)
+
+        torch.set_num_threads(1)
+        try:
+            return [first, *self._side_by_side.map(render_without_grad, cameras[1:])]
+        finally:
+            torch.set_num_threads(threads)
 
     def render_lidar(self, rays: LidarRays, time: SceneTime, step: Optional[int] = None,
                      hidden: Collection[str] = frozenset(), edits: Optional[ActorEdits] = None,

@@ -55,6 +55,28 @@ def test_render_is_the_scene_models_own_composition(recon, grad):
     assert torch.equal(got.rgb, ref.rgb) and torch.equal(got.depth, ref.depth)
 
 
+def test_render_cameras_side_by_side_equals_one_at_a_time(recon):
+    """A rig's cameras rendered side by side (render_cameras: workers, one thread each) give
+    the very images of rendering them one at a time, and the thread count is restored."""
+    views = recon.scene.views(recon.scene.train_frames)
+    frame = views[0].frame
+    cameras = [recon.camera(v) for v in views if v.frame == frame] * 2  # more cameras than workers
+    t = recon.time(frame + 0.5)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with torch.no_grad():
+            alone = [recon.render(c, t) for c in cameras]
+            together = recon.render_cameras(cameras, t)
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads)
+    assert len(together) == len(cameras)
+    for a, b in zip(alone, together):
+        assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth) and torch.equal(a.alpha, b.alpha)
+        assert not b.rgb.requires_grad  # grad mode is per thread: the workers turned it off too
+
+
 @dataclasses.dataclass
 class Moved:
     """An edited actor: the recorded one shifted by ``offset`` metres (world frame)."""

@@ -17,7 +17,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Optional
 
@@ -56,13 +55,6 @@ class Box:
                 "pose": np.round(self.pose, 6).tolist(), "size": np.round(self.size, 4).tolist()}
 
 
-def _render_without_grad(sim: Simulation, camera: Camera, time) -> np.ndarray:
-    """(H, W, 3) uint8 render in a worker thread (grad mode is per thread: no_grad here too,
-    else the render takes the autograd path)."""
-    with torch.no_grad():
-        return to_uint8(sim.render(camera, time).rgb)
-
-
 class ServedScene:
     """One trained scene served to clients. ``scenario``: the edits every episode starts
     from (and returns to on reset); ``assets``: the directory asset runs and motion files
@@ -90,8 +82,6 @@ class ServedScene:
         self.tracks = {t.track_id: t for t in scene.tracks}
         self.actor_ids = [t for node in recon.actor_nodes().values() for t in node.track_ids]
         self.render_lock = threading.Lock()
-        # renders the rig's cameras after the first side by side (render_many)
-        self.rig_pool = ThreadPoolExecutor(max(1, len(self.camera_names) - 1), thread_name_prefix="omnire-rig")
         self._base_sim = Simulation(recon, self.base, plugins)
         self._corridor: Optional[Corridor] = None
 
@@ -260,25 +250,10 @@ class ServedScene:
             return to_uint8(sim.render(camera, sim.time(seconds)).rgb)
 
     def render_many(self, sim: Simulation, cameras: list[Camera], seconds: float) -> list[np.ndarray]:
-        """(H, W, 3) uint8 images of ``sim`` through each of ``cameras`` at ``seconds`` (a rig).
-
-        The first camera renders with every torch thread and leaves the moment's node outputs
-        cached (actor nodes keep them per moment); the others then render at once, one thread
-        each, in :attr:`rig_pool`: on few cores, whole renders side by side scale better than
-        one render's threads (its small torch operations wait on each other). The pixels are
-        those of one camera at a time up to the float rounding of the thread count."""
-        time = sim.time(seconds)
+        """(H, W, 3) uint8 images of ``sim`` through each of ``cameras`` at ``seconds`` (a rig;
+        side by side where that is faster: ``Reconstruction.render_cameras``)."""
         with self.render_lock, torch.no_grad():
-            first = to_uint8(sim.render(cameras[0], time).rgb)
-            if len(cameras) == 1:
-                return [first]
-            threads = torch.get_num_threads()
-            torch.set_num_threads(1)
-            try:
-                rest = list(self.rig_pool.map(lambda cam: _render_without_grad(sim, cam, time), cameras[1:]))
-            finally:
-                torch.set_num_threads(threads)
-            return [first, *rest]
+            return [to_uint8(r.rgb) for r in sim.render_cameras(cameras, sim.time(seconds))]
 
 
 class Episode:

@@ -211,11 +211,11 @@ def run_sim(args: SimArgs, plugins, argv: Optional[list[str]] = None) -> Path:
                 entry = {"index": i, "path_seconds": float(path.seconds[i]),
                          "scene_seconds": float(scene_time.seconds - recon.scene.frame_timestamps[0]),
                          "scene_frame": float(scene_time.frame), "cameras": {}}
-                for c, name in enumerate(path.names):
-                    camera = path.camera(c, i, recon.device)
-                    t0 = time.perf_counter()
-                    result = sim.render(camera, scene_time)
-                    t_render += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                results = sim.render_cameras([path.camera(c, i, recon.device) for c in range(len(path.names))],
+                                             scene_time)
+                t_render += time.perf_counter() - t0
+                for c, (name, result) in enumerate(zip(path.names, results)):
                     cam_entry = {"cam_to_world": np.round(path.cam_to_world[c, i], 9).tolist()}
                     if want.frames:
                         rel = f"{name}/{i:05d}.png"
