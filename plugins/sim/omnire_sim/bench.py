@@ -7,6 +7,10 @@ size through the run's own rasterizer, after ``--warmup`` untimed renders. Repor
 and size: frames per second (views / total render time), the median time per frame, the
 Gaussians in the scene, and the process's peak resident memory.
 
+``--rig`` renders every camera of each chosen view's frame together, through
+``Reconstruction.render_cameras`` as ``omnire sim`` and the render server draw a frame (fps
+then counts images, and the median is per image).
+
 ``--save-images DIR`` keeps every render (float32 .npy) and ``--compare-to DIR`` reports the
 largest absolute pixel difference against such a set (same runs, views and sizes): a
 speed-up must not change the pixels. ``--training-path`` renders with autograd on through the
@@ -64,6 +68,8 @@ class BenchRenderArgs:
     """Render with autograd on through the plain torch composition instead of the inference path: a reference for --compare-to."""
     profile: bool = False
     """Also time writing each render as an 8-bit PNG (a stage of the profile table)."""
+    rig: bool = False
+    """Render every camera of each chosen view's frame together (``Reconstruction.render_cameras``, as omnire sim and the render server draw a frame): fps counts images; no stage table."""
 
 
 STAGE_COLUMNS = (("nodes", "nodes"), ("raster.rows", "rows"), ("raster.depth_order", "depth order"),
@@ -107,11 +113,12 @@ def pick_views(scene, count: int) -> list:
 
 
 def measure(run: Path, plugins: Plugins, sizes: list[tuple[int, int]], views: int, warmup: int, threads: int,
-            save: Optional[Path], compare: Optional[Path], training_path: bool = False, profile: bool = False) -> dict:
+            save: Optional[Path], compare: Optional[Path], training_path: bool = False, profile: bool = False,
+            rig: bool = False) -> dict:
     """Render ``run`` at every size (in this process); see the module docstring."""
     import torch
 
-    from omnire.api import Reconstruction, write_png
+    from omnire.api import Reconstruction, View, write_png
 
     torch.set_num_threads(threads)
     recon = Reconstruction.from_run(run, plugins)
@@ -122,35 +129,45 @@ def measure(run: Path, plugins: Plugins, sizes: list[tuple[int, int]], views: in
     out["path"] = "training" if training_path else "inference"
     if training_path:  # the plain torch composition (assemble + composite), not the fused native one
         recon.use_fused_training = False
+    shots = [[v] for v in chosen]  # the views rendered together: one each, or a rig's cameras per frame
+    if rig:
+        frames = list(dict.fromkeys(v.frame for v in chosen))
+        shots = [[View(camera=c, frame=f) for c in range(len(recon.scene.cameras))] for f in frames]
+    out["views"] = sum(len(shot) for shot in shots)
+    out["rig"] = rig
     with torch.set_grad_enabled(training_path):
         for w, h in sizes:
-            cams = [(v, recon.camera(v).resized(w, h)) for v in chosen]
-            for v, cam in cams[:warmup]:
-                recon.render(cam, recon.time(v.frame))
+            lenses = [[recon.camera(v).resized(w, h) for v in shot] for shot in shots]
+            for shot, cams in list(zip(shots, lenses))[:warmup]:
+                recon.render_cameras(cams, recon.time(shot[0].frame))
             times, stages, diff = [], [], 0.0
-            for v, cam in cams:
+            for shot, cams in zip(shots, lenses):
                 t0 = time.perf_counter()
-                result = recon.render(cam, recon.time(v.frame))
-                times.append(time.perf_counter() - t0)
-                stages.append(stage_times(result.timings, times[-1]))
-                rgb = result.rgb
-                if profile:
-                    with tempfile.TemporaryDirectory() as tmp:
-                        t0 = time.perf_counter()
-                        write_png(Path(tmp) / "frame.png", rgb)
-                        stages[-1]["png"] = time.perf_counter() - t0
-                name = f"{key}/{w}x{h}/{recon.scene.cameras[v.camera].name}_{v.frame:04d}.npy"
-                img = rgb.detach().cpu().numpy().astype(np.float32)
-                if save is not None:
-                    (save / name).parent.mkdir(parents=True, exist_ok=True)
-                    np.save(save / name, img)
-                if compare is not None:
-                    ref = compare / name
-                    if not ref.is_file():
-                        raise ConfigError(f"--compare-to: {ref} missing (save it first with --save-images)")
-                    diff = max(diff, float(np.abs(np.load(ref) - img).max()))
+                results = recon.render_cameras(cams, recon.time(shot[0].frame))
+                times.append((time.perf_counter() - t0) / len(shot))
+                for v, result in zip(shot, results):
+                    if not rig:  # a render's stages add up to its time only when it renders alone
+                        stages.append(stage_times(result.timings, times[-1]))
+                    rgb = result.rgb
+                    if profile and not rig:
+                        with tempfile.TemporaryDirectory() as tmp:
+                            t0 = time.perf_counter()
+                            write_png(Path(tmp) / "frame.png", rgb)
+                            stages[-1]["png"] = time.perf_counter() - t0
+                    name = f"{key}/{w}x{h}/{recon.scene.cameras[v.camera].name}_{v.frame:04d}.npy"
+                    img = rgb.detach().cpu().numpy().astype(np.float32)
+                    if save is not None:
+                        (save / name).parent.mkdir(parents=True, exist_ok=True)
+                        np.save(save / name, img)
+                    if compare is not None:
+                        ref = compare / name
+                        if not ref.is_file():
+                            raise ConfigError(f"--compare-to: {ref} missing (save it first with --save-images)")
+                        diff = max(diff, float(np.abs(np.load(ref) - img).max()))
+            images = sum(len(shot) for shot in shots)
             names = sorted({k for st in stages for k in st})
-            out["sizes"][f"{w}x{h}"] = {"fps": len(times) / sum(times), "median_ms": 1000 * float(np.median(times)),
+            out["sizes"][f"{w}x{h}"] = {"fps": images / sum(t * len(shot) for t, shot in zip(times, shots)),
+                                       "median_ms": 1000 * float(np.median(times)),
                                        "max_abs_diff": diff if compare is not None else None,
                                        "stages_ms": {k: 1000 * float(np.mean([st.get(k, 0.0) for st in stages]))
                                                      for k in names}}
@@ -164,7 +181,8 @@ def format_table(results: list[dict]) -> str:
     for r in results:
         for size, s in r["sizes"].items():
             diff = "-" if s["max_abs_diff"] is None else f"{s['max_abs_diff']:.2e}"
-            rows.append(f"| {Path(r['run']).name} | {r['method']} | {r['gaussians']} | {size} | {r['views']} | "
+            views = f"{r['views']} (rig)" if r.get("rig") else str(r["views"])
+            rows.append(f"| {Path(r['run']).name} | {r['method']} | {r['gaussians']} | {size} | {views} | "
                         f"{s['fps']:.2f} | {s['median_ms']:.1f} | {r['peak_mb']:.0f} | {diff} |")
     return "\n".join(rows) + "\n"
 
@@ -201,7 +219,7 @@ def main(argv: list[str], plugins) -> int:
             spec = {"run": str(run), "sizes": sizes, "views": args.views, "warmup": args.warmup,
                     "threads": args.threads, "save": str(args.save_images) if args.save_images else None,
                     "compare": str(args.compare_to) if args.compare_to else None, "result": str(result_file),
-                    "training_path": args.training_path, "profile": args.profile,
+                    "training_path": args.training_path, "profile": args.profile, "rig": args.rig,
                     "plugins": plugins.selection.as_dict()}
             env = dict(os.environ, OMP_NUM_THREADS=str(args.threads))
             proc = subprocess.run([sys.executable, "-m", "omnire_sim.bench", json.dumps(spec)], env=env,
@@ -225,7 +243,8 @@ def _worker(spec_json: str) -> None:
     plugins = PluginSelection.from_dict(spec["plugins"]).load()  # the same plugin set as the command's
     result = measure(Path(spec["run"]), plugins, [tuple(s) for s in spec["sizes"]], spec["views"], spec["warmup"],
                      spec["threads"], Path(spec["save"]) if spec["save"] else None,
-                     Path(spec["compare"]) if spec["compare"] else None, spec["training_path"], spec["profile"])
+                     Path(spec["compare"]) if spec["compare"] else None, spec["training_path"], spec["profile"],
+                     spec["rig"])
     atomic_write_text(spec["result"], json.dumps(result))
 
 

@@ -235,3 +235,13 @@ def test_bench_render(demo_run, plugins, tmp_path):
     assert main([*args, "--output", str(tmp_path / "d"), "--compare-to", str(tmp_path / "train")], plugins) == 0
     diff = json.loads((tmp_path / "d" / "results.json").read_text())[0]["sizes"]["64x36"]["max_abs_diff"]
     assert 0.0 <= diff <= 1e-4
+    # a rig (every camera of the views' frames, side by side on two threads): the single renders' pixels
+    rig = [str(demo_run), "--resolutions", "64x36", "--views", "2", "--warmup", "1", "--threads", "2", "--rig"]
+    assert main([*rig, "--output", str(tmp_path / "e"), "--save-images", str(tmp_path / "rig")], plugins) == 0
+    got = json.loads((tmp_path / "e" / "results.json").read_text())[0]
+    saved = [p.stem.rsplit("_", 1) for p in (tmp_path / "rig").rglob("*.npy")]  # (camera, frame) of each image
+    cameras, frames = {c for c, _ in saved}, {f for _, f in saved}
+    assert got["rig"] and got["views"] == len(saved) == len(cameras) * len(frames) and len(cameras) >= 2
+    assert " (rig) |" in (tmp_path / "e" / "results.md").read_text()
+    assert main([*args, "--output", str(tmp_path / "f"), "--compare-to", str(tmp_path / "rig")], plugins) == 0
+    assert json.loads((tmp_path / "f" / "results.json").read_text())[0]["sizes"]["64x36"]["max_abs_diff"] == 0.0
