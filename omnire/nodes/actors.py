@@ -25,7 +25,7 @@ from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 from omnire.geometry import axis_angle_to_rotmat, quat_multiply, rotmat_to_quat, slerp_rotmats
 from omnire.interpolation import bracket
 from omnire.camera import Camera, gaussian_reach, may_be_drawn
-from omnire.nodes.base import Derived, GaussianNode, GaussianNodeConfig, NodeContext, NodeOutput, ParamGroup
+from omnire.nodes.base import Derived, GaussianNode, MomentCache, GaussianNodeConfig, NodeContext, NodeOutput, ParamGroup
 from omnire.placement import Placement
 from omnire.pointcloud import points_in_box
 from omnire.rowsparse import gather_rows
@@ -272,6 +272,7 @@ class ActorNode(GaussianNode):
         self.poses = ActorPoses(tracks, context.scene.train_frames, refine_boxes, context.device)
         self._offsets: Optional[tuple[torch.Tensor, torch.Tensor]] = None  # (instance tensor, offsets) cache
         self.reach_of_instances = Derived()  # (I,) what instance_reach indexes, kept while the parameters hold
+        self.moment_outputs = MomentCache()  # renders' states and outputs by moment (gaussians_at)
 
     def instance_offsets(self) -> torch.Tensor:
         """(I+1,) row offsets per instance, recomputed only when the Gaussians change."""
@@ -333,7 +334,28 @@ class ActorNode(GaussianNode):
 
     def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
                      step: Optional[int] = None) -> Optional[NodeOutput]:
-        state = self.state_at(t)
+        """Without autograd (renders), the state at ``t`` and the output of each set of
+        actors in view are kept (:attr:`moment_outputs`, emptied when a tensor of the node
+        changes): the cameras of a rig rendered at one moment compute them once. So
+        :meth:`gaussians_for` must not depend on ``camera`` beyond the actors it is given
+        (:meth:`in_view` chooses them here)."""
+        if torch.is_grad_enabled():  # training: nothing kept
+            return self._gaussians_at(t, camera, step, self.state_at(t), self.gaussians_for)
+        sources = (*self.parameters(), *self.buffers(), *self.gaussian_buffers.values())
+        moment = (float(t.frame), float(t.seconds))
+        state = self.moment_outputs.get(sources, ("state", moment), lambda: self.state_at(t))
+
+        def kept_output(state: ActorState, t: SceneTime, camera: Optional[Camera], step: Optional[int]
+                        ) -> Optional[NodeOutput]:
+            return self.moment_outputs.get(sources, ("output", moment, step, tuple(state.ids.tolist())),
+                                           lambda: self.gaussians_for(state, t, camera, step))
+
+        return self._gaussians_at(t, camera, step, state, kept_output)
+
+    def _gaussians_at(self, t: SceneTime, camera: Optional[Camera], step: Optional[int], state: ActorState,
+                      draw) -> Optional[NodeOutput]:
+        """:meth:`gaussians_at` from the state at ``t``, drawing the actors in view by ``draw``
+        (:meth:`gaussians_for` or a kept output of it)."""
         if len(state.ids) == 0:
             return None  # absent actors cost nothing
         if camera is not None and not torch.is_grad_enabled():
@@ -345,7 +367,7 @@ class ActorNode(GaussianNode):
             if len(state.ids) == 0:
                 g, rows = self.present_gaussians(state.ids)  # no rows; the regularisers still run
                 return NodeOutput(g, rows, t)
-        return self.gaussians_for(state, t, camera, step)
+        return draw(state, t, camera, step)
 
 
 @dataclasses.dataclass

@@ -1,0 +1,89 @@
+"""Renders of one moment through several cameras (a rig) share the actor nodes' states and
+outputs (omnire.nodes.base.MomentCache): the same images as computed afresh, recomputed
+after any change of a node's tensors, and never kept under autograd (training)."""
+import numpy as np
+import torch
+
+from omnire.data.scene import ActorTrack
+from omnire.plugins import load_plugins
+from omnire.trainer import TrainConfig, Trainer, TrainerConfig
+
+
+def omnire_trainer(scene, tmp_path):
+    """The omnire method on ``scene`` with a pedestrian walking in front of the cameras."""
+    F = scene.num_frames
+    poses = np.tile(np.eye(4), (F, 1, 1))
+    poses[:, 0, 3] = 5.0 + 0.1 * np.arange(F)
+    poses[:, 1, 3] = -0.8
+    poses[:, 2, 3] = -0.625
+    scene.tracks.append(ActorTrack("ped-1", "Pedestrian", "human", poses, np.array([0.6, 0.6, 1.75]),
+                                   np.ones(F, bool)))
+    plugins = load_plugins()
+    cfg = plugins.methods.get("omnire").config_factory()
+    tc = TrainerConfig(max_steps=1, output_dir=tmp_path, run_name="omnire", progress=False, eval_train_views=0)
+    return Trainer(TrainConfig("omnire", "test", cfg, None, tc), plugins, argv=[], scene=scene)
+
+
+def fresh_render(recon, camera, t):
+    """A render with every actor node's kept states and outputs dropped first."""
+    for node in recon.actor_nodes().values():
+        node.moment_outputs = type(node.moment_outputs)()
+    return recon.render(camera, t)
+
+
+def test_cameras_of_one_moment_share_node_outputs_and_render_the_same(tiny_scene, tmp_path):
+    trainer = omnire_trainer(tiny_scene, tmp_path)
+    recon = trainer.recon
+    actors = recon.actor_nodes()
+    assert {"rigid", "smpl"} <= set(actors) and all(len(n.state_at(recon.time(1)).ids) for n in actors.values())
+    t = recon.time(1)
+    cameras = [recon.camera(v) for v in trainer.train_views if v.frame == 1]
+    assert len(cameras) >= 2
+    with torch.no_grad():
+        shared = [recon.render(c, t) for c in cameras]  # the second camera on reads kept outputs
+        for camera, result in zip(cameras, shared):
+            alone = fresh_render(recon, camera, t)
+            assert torch.equal(result.rgb, alone.rgb) and torch.equal(result.depth, alone.depth)
+        # kept: the same output object for a second camera that sees the same actors
+        for node in actors.values():
+            first = node.gaussians_at(t, cameras[0])
+            assert node.gaussians_at(t, cameras[0]) is first
+            assert node.gaussians_at(t, None) is node.gaussians_at(t, None)
+        # another moment is another entry
+        other = recon.time(2)
+        assert not torch.equal(recon.render(cameras[0], other).rgb, shared[0].rgb)
+        assert torch.equal(recon.render(cameras[0], t).rgb, shared[0].rgb)
+
+
+def test_a_changed_node_tensor_drops_what_was_kept(tiny_scene, tmp_path):
+    trainer = omnire_trainer(tiny_scene, tmp_path)
+    recon = trainer.recon
+    camera, t = recon.camera(trainer.train_views[0]), recon.time(trainer.train_views[0].frame)
+    with torch.no_grad():
+        before = recon.render(camera, t)
+        for node in recon.actor_nodes().values():
+            kept = node.gaussians_at(t, camera)
+            node.gaussian_params["means"] += 0.05  # in place: the version counter moves
+            moved = node.gaussians_at(t, camera)
+            assert moved is not kept
+            node.poses.delta_t += 0.1  # a pose refinement (a parameter of a submodule)
+            assert node.gaussians_at(t, camera) is not moved
+        after = recon.render(camera, t)
+        assert not torch.equal(after.rgb, before.rgb)
+        assert torch.equal(after.rgb, fresh_render(recon, camera, t).rgb)
+        # a replaced tensor (densification, loading a checkpoint) drops them too
+        node = recon.actor_nodes()["rigid"]
+        kept = node.gaussians_at(t, camera)
+        node.gaussian_params["opacities"] = torch.nn.Parameter(node.gaussian_params["opacities"] - 1.0)
+        assert node.gaussians_at(t, camera) is not kept
+    assert torch.equal(recon.render(camera, t).rgb, fresh_render(recon, camera, t).rgb)
+
+
+def test_training_keeps_nothing(tiny_scene, tmp_path):
+    trainer = omnire_trainer(tiny_scene, tmp_path)
+    recon = trainer.recon
+    t = recon.time(trainer.train_views[0].frame)
+    for node in recon.actor_nodes().values():
+        a, b = node.gaussians_at(t, None), node.gaussians_at(t, None)
+        assert a is not b
+        assert (a.gaussians if a.placement is None else a.local).means.requires_grad
