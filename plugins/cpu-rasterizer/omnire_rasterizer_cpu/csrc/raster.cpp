@@ -1151,6 +1151,32 @@ inline void sh_colour(const float* sh0, const float* shN, const float b[16], int
   col[0] = out[0], col[1] = out[1], col[2] = out[2];
 }
 
+// sh_colour of n <= 4 rows with bases b[l] and coefficients sh0[l], shN[l] (the same number
+// ``nb`` of bases): each row's own operations in its own order (so the same numbers). The
+// float version interleaves the rows' sums, four independent chains that overlap in the
+// pipeline where one row's sum waits on its previous addition 15 times.
+template <typename S>
+inline void sh_colours(const S* const sh0[4], const S* const shN[4], const S b[4][16], int nb, int n, S col[4][3]) {
+  for (int l = 0; l < n; ++l) sh_colour(sh0[l], shN[l], b[l], nb, col[l]);
+}
+
+inline void sh_colours(const float* const sh0[4], const float* const shN[4], const float b[4][16], int nb, int n,
+                       float col[4][3]) {
+  const __m128i rgb = _mm_setr_epi32(-1, -1, -1, 0);  // reads three floats, never past a row
+  const int src[4] = {0, n > 1 ? 1 : 0, n > 2 ? 2 : 0, n > 3 ? 3 : 0};  // spare lanes repeat the first row
+  __m128 v[4];
+  for (int l = 0; l < 4; ++l) v[l] = _mm_mul_ps(_mm_set1_ps(b[src[l]][0]), _mm_maskload_ps(sh0[src[l]], rgb));
+  for (int j = 1; j < nb; ++j)
+    for (int l = 0; l < 4; ++l)
+      v[l] = _mm_add_ps(v[l], _mm_mul_ps(_mm_set1_ps(b[src[l]][j]), _mm_maskload_ps(shN[src[l]] + (j - 1) * 3, rgb)));
+  for (int l = 0; l < n; ++l) {
+    // max(0, x) returns x when x is NaN, and -0 for -0, as std::max(x, 0) does
+    alignas(16) float out[4];
+    _mm_store_ps(out, _mm_max_ps(_mm_setzero_ps(), _mm_add_ps(v[l], _mm_set1_ps(0.5f))));
+    col[l][0] = out[0], col[l][1] = out[1], col[l][2] = out[2];
+  }
+}
+
 // Rows drawn moved by x -> R x + t (a camera-pose correction applied to the Gaussians,
 // omnire/camerapose.py, or an actor's box pose placing its box-local Gaussians in the world,
 // or both composed; rotations compose as q' = qa q with qa the quaternion of R). Projection
@@ -1370,10 +1396,9 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
     const RawGroup<S>& G = groups[sg.group];
     const int64_t k0 = G.start + chunks[ci].begin;
     int64_t n_drawn = 0;
-    // A projected row's record, rect and colour, in row order (slots follow rows).
-    auto finish = [&](int64_t i, const Proj& p) {
+    // A projected row's record, rect and colour ``c`` (sh_colours), in row order (slots follow rows).
+    auto finish = [&](int64_t i, const Proj& p, const S c[3]) {
       const int64_t k = G.start + i;
-      const S* mp = G.means + 3 * i;
       if (p.in_depth) { m2p[2 * k] = S(p.m2d[0]); m2p[2 * k + 1] = S(p.m2d[1]); }
       if (!p.ok) return;
       const S o = sigmoid_of(G.opac[i]);
@@ -1381,11 +1406,8 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       DrawnSlot<S>& slot = slots[k0 + n_drawn];  // kept only if the row is drawn
       int32_t rc[4];
       if (!radius_rect(p, tilesX, tilesY, &r, rc) || !(double(o) > 0.0)) return;
-      S d[3], b[16];
-      view_dir(mp, center, sg.mv, d);
-      sh_basis(G.deg, d, b);
       S* col = slot.col;
-      sh_colour(G.sh0 + 3 * i, G.shN + int64_t(G.K1) * 3 * i, b, (G.deg + 1) * (G.deg + 1), col);
+      for (int j = 0; j < 3; ++j) col[j] = c[j];
       if (!(std::isfinite(double(col[0])) && std::isfinite(double(col[1])) && std::isfinite(double(col[2])))) {
         bad = std::min(bad, k);
         return;
@@ -1397,17 +1419,30 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       ++n_drawn;
     };
     // Rows past the culling wait in fours: their projections share the lanes of D4
-    // (project_four, project_one's numbers), then each finishes in row order.
+    // (project_four, project_one's numbers) and their SH colours are summed together
+    // (sh_colours), then each finishes in row order. A row that is not drawn after all
+    // has its colour computed for nothing (few: nearly every row kept is drawn).
     int64_t pend[4];
     const S* pmean[4];
     const S* pquat[4];
     S pscale[4][3];
     int npend = 0;
+    const int nb = (G.deg + 1) * (G.deg + 1);
     auto flush = [&]() {
       if (npend == 0) return;
       Proj p[4];
       project_four(pmean, pquat, pscale, npend, sg.cam, near, far, eps2d, p);
-      for (int l = 0; l < npend; ++l) finish(pend[l], p[l]);
+      S b[4][16], col[4][3], d[3];
+      const S* psh0[4];
+      const S* pshN[4];
+      for (int l = 0; l < npend; ++l) {
+        view_dir(pmean[l], center, sg.mv, d);
+        sh_basis(G.deg, d, b[l]);
+        psh0[l] = G.sh0 + 3 * pend[l];
+        pshN[l] = G.shN + int64_t(G.K1) * 3 * pend[l];
+      }
+      sh_colours(psh0, pshN, b, nb, npend, col);
+      for (int l = 0; l < npend; ++l) finish(pend[l], p[l], col[l]);
       npend = 0;
     };
     for (int64_t i = chunks[ci].begin; i < chunks[ci].end; ++i) {
