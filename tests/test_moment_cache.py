@@ -87,3 +87,43 @@ def test_training_keeps_nothing(tiny_scene, tmp_path):
         a, b = node.gaussians_at(t, None), node.gaussians_at(t, None)
         assert a is not b
         assert (a.gaussians if a.placement is None else a.local).means.requires_grad
+
+
+def turned(camera, yaw: float):
+    """``camera`` turned by ``yaw`` radians about the world's vertical axis through its centre."""
+    import dataclasses
+    import math
+
+    c, s = math.cos(yaw), math.sin(yaw)
+    Rz = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=camera.cam_to_world.dtype)
+    pose = camera.cam_to_world.clone()
+    pose[:3, :3] = Rz @ pose[:3, :3]
+    return dataclasses.replace(camera, cam_to_world=pose, _world_to_cam=None)
+
+
+def test_cameras_seeing_other_actors_share_every_present_actor(tiny_scene, tmp_path):
+    """Once a second camera at a moment sees other actors than the first, the node draws
+    every present actor once for all the cameras at that moment: still the same images."""
+    import copy
+
+    side = copy.deepcopy(tiny_scene.tracks[0])  # a second car farther on, to the left
+    side.track_id = "car-2"
+    side.poses[:, 0, 3] += 6.0
+    side.poses[:, 1, 3] += 4.0
+    tiny_scene.tracks.append(side)
+    trainer = omnire_trainer(tiny_scene, tmp_path)
+    recon = trainer.recon
+    rigid = recon.actor_nodes()["rigid"]
+    t = recon.time(1)
+    base = recon.camera(trainer.train_views[0])
+    cameras = [turned(base, yaw) for yaw in (-0.6, 0.0, 0.6, -0.3, 1.5)]
+    with torch.no_grad():
+        seen = [tuple(rigid.in_view(rigid.state_at(t), c).ids.tolist()) for c in cameras]
+        assert len({s for s in seen if s}) >= 2, seen  # cameras that see different cars
+        shared = [recon.render(c, t) for c in cameras]
+        every = [rigid.gaussians_at(t, c) for c, s in zip(cameras, seen) if s]
+        assert all(out is every[0] for out in every)
+        assert len(every[0].placement.lengths) == 2  # both cars
+        for camera, result in zip(cameras, shared):
+            alone = fresh_render(recon, camera, t)
+            assert torch.equal(result.rgb, alone.rgb) and torch.equal(result.depth, alone.depth)

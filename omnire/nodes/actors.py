@@ -334,40 +334,40 @@ class ActorNode(GaussianNode):
 
     def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
                      step: Optional[int] = None) -> Optional[NodeOutput]:
-        """Without autograd (renders), the state at ``t`` and the output of each set of
-        actors in view are kept (:attr:`moment_outputs`, emptied when a tensor of the node
-        changes): the cameras of a rig rendered at one moment compute them once. So
-        :meth:`gaussians_for` must not depend on ``camera`` beyond the actors it is given
-        (:meth:`in_view` chooses them here)."""
-        if torch.is_grad_enabled():  # training: nothing kept
-            return self._gaussians_at(t, camera, step, self.state_at(t), self.gaussians_for)
+        """Renders (no autograd) leave out the actors ``camera`` cannot see (:meth:`in_view`)
+        and keep what a moment needs (:attr:`moment_outputs`, emptied when a tensor of the
+        node changes), so that the cameras of a rig rendered at one moment compute it once:
+        the state at ``t``, the output of the actors a camera sees, and once a second camera
+        at that moment sees other actors, the output of every present actor, which then
+        serves every camera at that moment (the rasterizer culls the others per Gaussian: the
+        same pixels). So :meth:`gaussians_for` must not depend on ``camera`` beyond the actors
+        it is given."""
+        if torch.is_grad_enabled():
+            # A training step places every present actor, so its Gaussians get their Adam
+            # step on a zero gradient (momentum) as with dense Adam; skipping them changed
+            # training (CHANGELOG.md, 2026-11-26). Nothing is kept.
+            state = self.state_at(t)
+            return None if len(state.ids) == 0 else self.gaussians_for(state, t, camera, step)
+        kept = self.moment_outputs
         sources = (*self.parameters(), *self.buffers(), *self.gaussian_buffers.values())
         moment = (float(t.frame), float(t.seconds))
-        state = self.moment_outputs.get(sources, ("state", moment), lambda: self.state_at(t))
-
-        def kept_output(state: ActorState, t: SceneTime, camera: Optional[Camera], step: Optional[int]
-                        ) -> Optional[NodeOutput]:
-            return self.moment_outputs.get(sources, ("output", moment, step, tuple(state.ids.tolist())),
-                                           lambda: self.gaussians_for(state, t, camera, step))
-
-        return self._gaussians_at(t, camera, step, state, kept_output)
-
-    def _gaussians_at(self, t: SceneTime, camera: Optional[Camera], step: Optional[int], state: ActorState,
-                      draw) -> Optional[NodeOutput]:
-        """:meth:`gaussians_at` from the state at ``t``, drawing the actors in view by ``draw``
-        (:meth:`gaussians_for` or a kept output of it)."""
+        state = kept.get(sources, ("state", moment), lambda: self.state_at(t))
         if len(state.ids) == 0:
             return None  # absent actors cost nothing
-        if camera is not None and not torch.is_grad_enabled():
-            # Present but out of view: no transform, no rasterizer rows (renders only). A
-            # training step places every present actor, so its Gaussians get their Adam step
-            # on a zero gradient (momentum) as with dense Adam; skipping them changed training
-            # (CHANGELOG.md, 2026-11-26).
-            state = self.in_view(state, camera)
-            if len(state.ids) == 0:
-                g, rows = self.present_gaussians(state.ids)  # no rows; the regularisers still run
-                return NodeOutput(g, rows, t)
-        return draw(state, t, camera, step)
+        every = ("every", moment, step)
+        if kept.holds(sources, every):
+            return kept.get(sources, every, lambda: None)
+        seen = state if camera is None else self.in_view(state, camera)
+        if len(seen.ids) == len(state.ids):
+            return kept.get(sources, every, lambda: self.gaussians_for(state, t, camera, step))
+        if len(seen.ids) == 0:  # present but out of view: no transform, no rasterizer rows
+            g, rows = self.present_gaussians(seen.ids)  # no rows; the regularisers still run
+            return NodeOutput(g, rows, t)
+        key = ("seen", moment, step, tuple(seen.ids.tolist()))
+        if not kept.holds(sources, key) and kept.holds(sources, ("drawn", moment, step)):
+            return kept.get(sources, every, lambda: self.gaussians_for(state, t, None, step))
+        kept.get(sources, ("drawn", moment, step), lambda: True)
+        return kept.get(sources, key, lambda: self.gaussians_for(seen, t, camera, step))
 
 
 @dataclasses.dataclass

@@ -144,6 +144,10 @@ class MomentCache:
         self.size = size
         self._table = Derived()
 
+    def holds(self, sources: tuple[torch.Tensor, ...], key: Any) -> bool:
+        """Whether a value for ``key`` is kept for these sources."""
+        return key in self._table.get(sources, dict)
+
     def get(self, sources: tuple[torch.Tensor, ...], key: Any, compute: Callable[[], Any]) -> Any:
         """``compute()``'s value for ``key`` (hashable: the moment and whatever else the value
         depends on besides ``sources``), computed now only when not kept for these sources."""
