@@ -374,9 +374,9 @@ inline bool reaches_tile(const AlphaReach& r, double bc, double ba, int tx, int 
   const double y0 = ty * TILE + 0.5 - r.my, y1 = std::min(ty * TILE + TILE, H) - 0.5 - r.my;
   if (x0 <= 0.0 && 0.0 <= x1 && y0 <= 0.0 && 0.0 <= y1) return true;
   auto q = [&](double u, double v) { return r.a * u * u + 2.0 * r.b * u * v + r.c * v * v; };
-  const double least = std::min(std::min(q(x0, std::clamp(-bc * x0, y0, y1)), q(x1, std::clamp(-bc * x1, y0, y1))),
-                                std::min(q(std::clamp(-ba * y0, x0, x1), y0), q(std::clamp(-ba * y1, x0, x1), y1)));
-  return least <= r.T;
+  // the least of the four edges' least values is at most T when one of them is (all finite)
+  return q(x0, std::clamp(-bc * x0, y0, y1)) <= r.T || q(x1, std::clamp(-bc * x1, y0, y1)) <= r.T ||
+         q(std::clamp(-ba * y0, x0, x1), y0) <= r.T || q(std::clamp(-ba * y1, x0, x1), y1) <= r.T;
 }
 
 // The tiles of a Gaussian's rect ``rc`` (x0, y0, x1, y1) its alpha ellipse reaches
@@ -673,6 +673,12 @@ void render_forward(const Camera& cam, int D, int tilesX, int tilesY, const S* r
         // least power with alpha >= 1/255; 1% in alpha, far above the rounding of exp) fails
         // the alpha test for sure: skipped before the exp. Changes no pixel.
         const V pthr = P::set1(g[9]);
+        // dx and the power's dx-only term of each lane group, the same for every row
+        V dxs[TILE / L], xterm[TILE / L];
+        for (int vg = sp.v0; vg < sp.v1; ++vg) {
+          dxs[vg] = P::set1(S(x0 + vg * L) + S(0.5)) + lane - mx;
+          xterm[vg] = mhalf * ca * dxs[vg] * dxs[vg];
+        }
         for (int r = sp.r0; r < sp.r1; ++r) {
           const V dy = P::set1(S(y0 + r) + S(0.5)) - my;
           const V cdy = cb * dy, hdy2 = mhalf * cc * dy * dy;
@@ -680,8 +686,8 @@ void render_forward(const Camera& cam, int D, int tilesX, int tilesY, const S* r
             const int idx = r * TILE + vg * L;
             M m = P::load_mask(&alive[idx]);
             if (!P::any(m)) continue;
-            const V dx = P::set1(S(x0 + vg * L) + S(0.5)) + lane - mx;
-            const V power = mhalf * ca * dx * dx - cdy * dx + hdy2;
+            const V dx = dxs[vg];
+            const V power = xterm[vg] - cdy * dx + hdy2;
             if (!P::any(P::mand(m, P::ge(power, pthr)))) continue;
             const V al = P::vmin(amax, op * P::exp(power));
             m = P::mand(m, P::mand(P::ge(al, amin), P::le(power, zero)));
