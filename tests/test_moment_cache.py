@@ -127,3 +127,22 @@ def test_cameras_seeing_other_actors_share_every_present_actor(tiny_scene, tmp_p
         for camera, result in zip(cameras, shared):
             alone = fresh_render(recon, camera, t)
             assert torch.equal(result.rgb, alone.rgb) and torch.equal(result.depth, alone.depth)
+
+
+def test_moment_cache_keeps_the_latest_keys_until_a_source_changes():
+    from omnire.nodes.base import MomentCache
+
+    a, b = torch.zeros(3), torch.ones(2)
+    cache, calls = MomentCache(size=2), []
+
+    def value(key):
+        return lambda: calls.append(key) or key * 10
+
+    assert cache.get((a, b), 1, value(1)) == 10 and cache.get((a, b), 2, value(2)) == 20
+    assert cache.get((a, b), 1, value(1)) == 10 and calls == [1, 2]  # kept
+    assert cache.get((a, b), 3, value(3)) == 30  # 2 was the least recent: dropped
+    assert cache.holds((a, b), 1) and cache.holds((a, b), 3) and not cache.holds((a, b), 2)
+    a += 1  # changed in place
+    assert not cache.holds((a, b), 1)
+    assert cache.get((a, b), 1, value(1)) == 10 and calls == [1, 2, 3, 1]
+    assert not cache.holds((a, torch.ones(2)), 1)  # another tensor object
