@@ -340,7 +340,7 @@ class ActorNode(GaussianNode):
         the state at ``t``, the output of the actors a camera sees, and once a second camera
         at that moment sees other actors, the output of every present actor, which then
         serves every camera at that moment (the rasterizer culls the others per Gaussian: the
-        same pixels). So :meth:`gaussians_for` must not depend on ``camera`` beyond the actors
+        same pixels up to the float rounding of batched pose products). So :meth:`gaussians_for` must not depend on ``camera`` beyond the actors
         it is given."""
         if torch.is_grad_enabled():
             # A training step places every present actor, so its Gaussians get their Adam
