@@ -25,7 +25,7 @@ from omnire.gaussians import GAUSSIAN_KEYS, Gaussians
 from omnire.geometry import axis_angle_to_rotmat, quat_multiply, rotmat_to_quat, slerp_rotmats
 from omnire.interpolation import bracket
 from omnire.camera import Camera, gaussian_reach, may_be_drawn
-from omnire.nodes.base import Derived, GaussianNode, GaussianNodeConfig, NodeContext, NodeOutput, ParamGroup
+from omnire.nodes.base import Derived, GaussianNode, MomentCache, GaussianNodeConfig, NodeContext, NodeOutput, ParamGroup
 from omnire.placement import Placement
 from omnire.pointcloud import points_in_box
 from omnire.rowsparse import gather_rows
@@ -272,6 +272,7 @@ class ActorNode(GaussianNode):
         self.poses = ActorPoses(tracks, context.scene.train_frames, refine_boxes, context.device)
         self._offsets: Optional[tuple[torch.Tensor, torch.Tensor]] = None  # (instance tensor, offsets) cache
         self.reach_of_instances = Derived()  # (I,) what instance_reach indexes, kept while the parameters hold
+        self.moment_outputs = MomentCache()  # renders' states and outputs by moment (gaussians_at)
 
     def instance_offsets(self) -> torch.Tensor:
         """(I+1,) row offsets per instance, recomputed only when the Gaussians change."""
@@ -333,19 +334,40 @@ class ActorNode(GaussianNode):
 
     def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,
                      step: Optional[int] = None) -> Optional[NodeOutput]:
-        state = self.state_at(t)
+        """Renders (no autograd) leave out the actors ``camera`` cannot see (:meth:`in_view`)
+        and keep what a moment needs (:attr:`moment_outputs`, emptied when a tensor of the
+        node changes), so that the cameras of a rig rendered at one moment compute it once:
+        the state at ``t``, the output of the actors a camera sees, and once a second camera
+        at that moment sees other actors, the output of every present actor, which then
+        serves every camera at that moment (the rasterizer culls the others per Gaussian: the
+        same pixels up to the float rounding of batched pose products). So :meth:`gaussians_for` must not depend on ``camera`` beyond the actors
+        it is given."""
+        if torch.is_grad_enabled():
+            # A training step places every present actor, so its Gaussians get their Adam
+            # step on a zero gradient (momentum) as with dense Adam; skipping them changed
+            # training (CHANGELOG.md, 2026-11-26). Nothing is kept.
+            state = self.state_at(t)
+            return None if len(state.ids) == 0 else self.gaussians_for(state, t, camera, step)
+        kept = self.moment_outputs
+        sources = (*self.parameters(), *self.buffers(), *self.gaussian_buffers.values())
+        moment = (float(t.frame), float(t.seconds))
+        state = kept.get(sources, ("state", moment), lambda: self.state_at(t))
         if len(state.ids) == 0:
             return None  # absent actors cost nothing
-        if camera is not None and not torch.is_grad_enabled():
-            # Present but out of view: no transform, no rasterizer rows (renders only). A
-            # training step places every present actor, so its Gaussians get their Adam step
-            # on a zero gradient (momentum) as with dense Adam; skipping them changed training
-            # (CHANGELOG.md, 2026-11-26).
-            state = self.in_view(state, camera)
-            if len(state.ids) == 0:
-                g, rows = self.present_gaussians(state.ids)  # no rows; the regularisers still run
-                return NodeOutput(g, rows, t)
-        return self.gaussians_for(state, t, camera, step)
+        every = ("every", moment, step)
+        if kept.holds(sources, every):
+            return kept.get(sources, every, lambda: None)
+        seen = state if camera is None else self.in_view(state, camera)
+        if len(seen.ids) == len(state.ids):
+            return kept.get(sources, every, lambda: self.gaussians_for(state, t, camera, step))
+        if len(seen.ids) == 0:  # present but out of view: no transform, no rasterizer rows
+            g, rows = self.present_gaussians(seen.ids)  # no rows; the regularisers still run
+            return NodeOutput(g, rows, t)
+        key = ("seen", moment, step, tuple(seen.ids.tolist()))
+        if not kept.holds(sources, key) and kept.holds(sources, ("drawn", moment, step)):
+            return kept.get(sources, every, lambda: self.gaussians_for(state, t, None, step))
+        kept.get(sources, ("drawn", moment, step), lambda: True)
+        return kept.get(sources, key, lambda: self.gaussians_for(seen, t, camera, step))
 
 
 @dataclasses.dataclass

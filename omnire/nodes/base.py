@@ -134,6 +134,33 @@ class Derived:
         return self._value
 
 
+class MomentCache:
+    """What a node computed for a moment at inference, kept for the next renders of that
+    moment (the cameras of a rig rendered at one time share their node outputs) while the
+    node's tensors hold: any parameter, buffer or per-Gaussian tensor replaced or changed
+    in place (:class:`Derived`) empties it. Holds the ``size`` most recent keys."""
+
+    def __init__(self, size: int = 8) -> None:
+        self.size = size
+        self._table = Derived()
+
+    def holds(self, sources: tuple[torch.Tensor, ...], key: Any) -> bool:
+        """Whether a value for ``key`` is kept for these sources."""
+        return key in self._table.get(sources, dict)
+
+    def get(self, sources: tuple[torch.Tensor, ...], key: Any, compute: Callable[[], Any]) -> Any:
+        """``compute()``'s value for ``key`` (hashable: the moment and whatever else the value
+        depends on besides ``sources``), computed now only when not kept for these sources."""
+        table: dict = self._table.get(sources, dict)
+        if key in table:
+            table[key] = table.pop(key)  # most recent last
+        else:
+            table[key] = compute()
+            while len(table) > self.size:
+                del table[next(iter(table))]
+        return table[key]
+
+
 @dataclasses.dataclass
 class NodeConfig(InstantiateConfig):
     """Base of every node config."""

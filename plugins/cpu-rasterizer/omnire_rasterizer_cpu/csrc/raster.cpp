@@ -374,9 +374,9 @@ inline bool reaches_tile(const AlphaReach& r, double bc, double ba, int tx, int 
   const double y0 = ty * TILE + 0.5 - r.my, y1 = std::min(ty * TILE + TILE, H) - 0.5 - r.my;
   if (x0 <= 0.0 && 0.0 <= x1 && y0 <= 0.0 && 0.0 <= y1) return true;
   auto q = [&](double u, double v) { return r.a * u * u + 2.0 * r.b * u * v + r.c * v * v; };
-  const double least = std::min(std::min(q(x0, std::clamp(-bc * x0, y0, y1)), q(x1, std::clamp(-bc * x1, y0, y1))),
-                                std::min(q(std::clamp(-ba * y0, x0, x1), y0), q(std::clamp(-ba * y1, x0, x1), y1)));
-  return least <= r.T;
+  // the least of the four edges' least values is at most T when one of them is (all finite)
+  return q(x0, std::clamp(-bc * x0, y0, y1)) <= r.T || q(x1, std::clamp(-bc * x1, y0, y1)) <= r.T ||
+         q(std::clamp(-ba * y0, x0, x1), y0) <= r.T || q(std::clamp(-ba * y1, x0, x1), y1) <= r.T;
 }
 
 // The tiles of a Gaussian's rect ``rc`` (x0, y0, x1, y1) its alpha ellipse reaches
@@ -673,6 +673,12 @@ void render_forward(const Camera& cam, int D, int tilesX, int tilesY, const S* r
         // least power with alpha >= 1/255; 1% in alpha, far above the rounding of exp) fails
         // the alpha test for sure: skipped before the exp. Changes no pixel.
         const V pthr = P::set1(g[9]);
+        // dx and the power's dx-only term of each lane group, the same for every row
+        V dxs[TILE / L], xterm[TILE / L];
+        for (int vg = sp.v0; vg < sp.v1; ++vg) {
+          dxs[vg] = P::set1(S(x0 + vg * L) + S(0.5)) + lane - mx;
+          xterm[vg] = mhalf * ca * dxs[vg] * dxs[vg];
+        }
         for (int r = sp.r0; r < sp.r1; ++r) {
           const V dy = P::set1(S(y0 + r) + S(0.5)) - my;
           const V cdy = cb * dy, hdy2 = mhalf * cc * dy * dy;
@@ -680,8 +686,8 @@ void render_forward(const Camera& cam, int D, int tilesX, int tilesY, const S* r
             const int idx = r * TILE + vg * L;
             M m = P::load_mask(&alive[idx]);
             if (!P::any(m)) continue;
-            const V dx = P::set1(S(x0 + vg * L) + S(0.5)) + lane - mx;
-            const V power = mhalf * ca * dx * dx - cdy * dx + hdy2;
+            const V dx = dxs[vg];
+            const V power = xterm[vg] - cdy * dx + hdy2;
             if (!P::any(P::mand(m, P::ge(power, pthr)))) continue;
             const V al = P::vmin(amax, op * P::exp(power));
             m = P::mand(m, P::mand(P::ge(al, amin), P::le(power, zero)));
@@ -1151,6 +1157,32 @@ inline void sh_colour(const float* sh0, const float* shN, const float b[16], int
   col[0] = out[0], col[1] = out[1], col[2] = out[2];
 }
 
+// sh_colour of n <= 4 rows with bases b[l] and coefficients sh0[l], shN[l] (the same number
+// ``nb`` of bases): each row's own operations in its own order (so the same numbers). The
+// float version interleaves the rows' sums, four independent chains that overlap in the
+// pipeline where one row's sum waits on its previous addition 15 times.
+template <typename S>
+inline void sh_colours(const S* const sh0[4], const S* const shN[4], const S b[4][16], int nb, int n, S col[4][3]) {
+  for (int l = 0; l < n; ++l) sh_colour(sh0[l], shN[l], b[l], nb, col[l]);
+}
+
+inline void sh_colours(const float* const sh0[4], const float* const shN[4], const float b[4][16], int nb, int n,
+                       float col[4][3]) {
+  const __m128i rgb = _mm_setr_epi32(-1, -1, -1, 0);  // reads three floats, never past a row
+  const int src[4] = {0, n > 1 ? 1 : 0, n > 2 ? 2 : 0, n > 3 ? 3 : 0};  // spare lanes repeat the first row
+  __m128 v[4];
+  for (int l = 0; l < 4; ++l) v[l] = _mm_mul_ps(_mm_set1_ps(b[src[l]][0]), _mm_maskload_ps(sh0[src[l]], rgb));
+  for (int j = 1; j < nb; ++j)
+    for (int l = 0; l < 4; ++l)
+      v[l] = _mm_add_ps(v[l], _mm_mul_ps(_mm_set1_ps(b[src[l]][j]), _mm_maskload_ps(shN[src[l]] + (j - 1) * 3, rgb)));
+  for (int l = 0; l < n; ++l) {
+    // max(0, x) returns x when x is NaN, and -0 for -0, as std::max(x, 0) does
+    alignas(16) float out[4];
+    _mm_store_ps(out, _mm_max_ps(_mm_setzero_ps(), _mm_add_ps(v[l], _mm_set1_ps(0.5f))));
+    col[l][0] = out[0], col[l][1] = out[1], col[l][2] = out[2];
+  }
+}
+
 // Rows drawn moved by x -> R x + t (a camera-pose correction applied to the Gaussians,
 // omnire/camerapose.py, or an actor's box pose placing its box-local Gaussians in the world,
 // or both composed; rotations compose as q' = qa q with qa the quaternion of R). Projection
@@ -1344,6 +1376,9 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
   // k0 writes slot k0 + j (its row in the slot), so the depth-order gather below reads a few
   // dense runs instead of rows scattered over all N. Left uninitialised: only drawn slots are read.
   std::unique_ptr<DrawnSlot<S>[]> slots(new DrawnSlot<S>[size_t(std::max<int64_t>(N, 1))]);
+  // beside each drawn slot its sort item (depth bits, slot), so that the depth order reads
+  // 8 bytes per drawn row instead of its slot's line
+  std::unique_ptr<uint64_t[]> items(new uint64_t[size_t(std::max<int64_t>(N, 1))]);
   auto radii = at::empty({N}, at::kInt);
   auto means2d = at::empty({N, 2}, opts);
   int32_t* radp = radii.data_ptr<int32_t>();
@@ -1370,10 +1405,9 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
     const RawGroup<S>& G = groups[sg.group];
     const int64_t k0 = G.start + chunks[ci].begin;
     int64_t n_drawn = 0;
-    // A projected row's record, rect and colour, in row order (slots follow rows).
-    auto finish = [&](int64_t i, const Proj& p) {
+    // A projected row's record, rect and colour ``c`` (sh_colours), in row order (slots follow rows).
+    auto finish = [&](int64_t i, const Proj& p, const S c[3]) {
       const int64_t k = G.start + i;
-      const S* mp = G.means + 3 * i;
       if (p.in_depth) { m2p[2 * k] = S(p.m2d[0]); m2p[2 * k + 1] = S(p.m2d[1]); }
       if (!p.ok) return;
       const S o = sigmoid_of(G.opac[i]);
@@ -1381,11 +1415,8 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       DrawnSlot<S>& slot = slots[k0 + n_drawn];  // kept only if the row is drawn
       int32_t rc[4];
       if (!radius_rect(p, tilesX, tilesY, &r, rc) || !(double(o) > 0.0)) return;
-      S d[3], b[16];
-      view_dir(mp, center, sg.mv, d);
-      sh_basis(G.deg, d, b);
       S* col = slot.col;
-      sh_colour(G.sh0 + 3 * i, G.shN + int64_t(G.K1) * 3 * i, b, (G.deg + 1) * (G.deg + 1), col);
+      for (int j = 0; j < 3; ++j) col[j] = c[j];
       if (!(std::isfinite(double(col[0])) && std::isfinite(double(col[1])) && std::isfinite(double(col[2])))) {
         bad = std::min(bad, k);
         return;
@@ -1394,20 +1425,37 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
       write_record(p, double(o), tilesX, tilesY, slot.rec, rc);
       for (int j = 0; j < 4; ++j) slot.rect[j] = uint16_t(rc[j]);
       slot.row = int32_t(k);
+      const float depth = float(slot.rec[6]);
+      uint32_t bits;
+      std::memcpy(&bits, &depth, 4);
+      items[k0 + n_drawn] = (uint64_t(bits) << 32) | uint64_t(uint32_t(k0 + n_drawn));
       ++n_drawn;
     };
     // Rows past the culling wait in fours: their projections share the lanes of D4
-    // (project_four, project_one's numbers), then each finishes in row order.
+    // (project_four, project_one's numbers) and their SH colours are summed together
+    // (sh_colours), then each finishes in row order. A row that is not drawn after all
+    // has its colour computed for nothing (few: nearly every row kept is drawn).
     int64_t pend[4];
     const S* pmean[4];
     const S* pquat[4];
     S pscale[4][3];
     int npend = 0;
+    const int nb = (G.deg + 1) * (G.deg + 1);
     auto flush = [&]() {
       if (npend == 0) return;
       Proj p[4];
       project_four(pmean, pquat, pscale, npend, sg.cam, near, far, eps2d, p);
-      for (int l = 0; l < npend; ++l) finish(pend[l], p[l]);
+      S b[4][16], col[4][3], d[3];
+      const S* psh0[4];
+      const S* pshN[4];
+      for (int l = 0; l < npend; ++l) {
+        view_dir(pmean[l], center, sg.mv, d);
+        sh_basis(G.deg, d, b[l]);
+        psh0[l] = G.sh0 + 3 * pend[l];
+        pshN[l] = G.shN + int64_t(G.K1) * 3 * pend[l];
+      }
+      sh_colours(psh0, pshN, b, nb, npend, col);
+      for (int l = 0; l < npend; ++l) finish(pend[l], p[l], col[l]);
       npend = 0;
     };
     for (int64_t i = chunks[ci].begin; i < chunks[ci].end; ++i) {
@@ -1455,12 +1503,7 @@ std::vector<at::Tensor> forward_train_impl(const std::vector<RawGroup<S>>& group
     order.reserve(total);
     for (size_t ci = 0; ci < chunks.size(); ++ci) {
       const int64_t k0 = groups[segs[chunks[ci].seg].group].start + chunks[ci].begin;
-      for (int64_t slot = k0; slot < k0 + drawn[ci]; ++slot) {
-        const float depth = float(slots[slot].rec[6]);
-        uint32_t bits;
-        std::memcpy(&bits, &depth, 4);
-        order.push_back((uint64_t(bits) << 32) | uint64_t(uint32_t(slot)));
-      }
+      order.insert(order.end(), items.get() + k0, items.get() + k0 + drawn[ci]);
     }
     sort_by_depth(order, nthreads);
   }
