@@ -221,11 +221,12 @@ class Trainer:
             recorded = {"method": _comparable(theirs.method), "dataparser": _comparable(theirs.dataparser)}
         if recorded is None:
             return
+        then = Path(info.extra.get("cwd") or Path.cwd())  # the recorded settings' relative paths are against it
         for key, what, config in (("dataparser", "data selection (dataparser flags)", mine.dataparser),
                                   ("method", "method settings (--method.* flags)", mine.method)):
             da, db = _comparable(config), recorded.get(key, {})
             # settings the recorded run did not have yet (added to omnire since) are not compared
-            changed = sorted(k for k in set(da) | set(db) if k in db and da.get(k) != db.get(k))
+            changed = sorted(k for k in set(da) | set(db) if k in db and not _same_setting(da.get(k), db.get(k), then))
             if changed:
                 raise ConfigError(f"--trainer.resume: the {what} differ from the recorded run's: "
                                   + ", ".join(f"{k}: {db.get(k)!r} -> {da.get(k)!r}" for k in changed[:6]))
@@ -599,6 +600,18 @@ class Trainer:
         if self.schedule.timed and state.get("schedule_step") is None:  # a step budget's, continued on the clock
             self.recon.schedule_step = self.schedule.position(self.step, self.train_seconds)
         self._sh_bands_degree = None
+
+
+def _same_setting(mine, recorded, recorded_cwd: Path) -> bool:
+    """Whether a setting of this process equals the recorded run's: equal values, or two
+    strings naming the same path (relative ones against this process's working directory and
+    the recorded run's ``recorded_cwd``: run.json's settings keep paths as given, its argv
+    makes them absolute, so a run resumed from its recorded command line matches)."""
+    if mine == recorded:
+        return True
+    if isinstance(mine, str) and isinstance(recorded, str) and mine and recorded:
+        return (Path.cwd() / mine).resolve() == (recorded_cwd / recorded).resolve()
+    return False
 
 
 def _comparable(config) -> dict:

@@ -90,3 +90,33 @@ def test_keeping_everything_without_finetuning_copies_the_model(tiny_run, tmp_pa
     report = json.loads((out / "compact.json").read_text())
     assert list(report["states"]) == ["source", "compacted"]
     assert all(c["before"] == c["after"] for c in report["counts"].values())
+
+
+def test_finetuning_lowers_the_training_loss(tiny_run, tmp_path):
+    """Fine-tuning after pruning trains the kept Gaussians on the training views: the
+    training-view PSNR (every training view) rises from the pruned state, and the checkpoint
+    and run.json agree on the new step. The source's run.json records its --data relative to
+    the directory it was trained in (as ``omnire train`` does for a relative path), which the
+    branch must match to the absolute path of the recorded command line."""
+    import shutil
+
+    source = tmp_path / "runs" / "omnire"
+    shutil.copytree(tiny_run, source)
+    info = json.loads((source / "run.json").read_text())
+    data = Path(info["settings"]["dataparser"]["data"])
+    info["cwd"], info["settings"]["dataparser"]["data"] = str(data.parent), data.name
+    (source / "run.json").write_text(json.dumps(info))
+    out = tmp_path / "tuned"
+    omnire("compact", str(source), "--output", str(out), "--keep-fraction", "0.3", "--finetune-steps", "12",
+           "--eval-train-views", "0", "--threads", "1", "--no-progress")
+    states = json.loads((out / "compact.json").read_text())["states"]
+    assert list(states) == ["source", "pruned", "compacted"]
+    assert states["compacted"]["train_psnr"] > states["pruned"]["train_psnr"] + 0.1, states
+    assert states["compacted"]["num_gaussians"] <= states["pruned"]["num_gaussians"]
+    step = states["source"]["step"] + 12
+    assert states["compacted"]["step"] == step
+    recorded = json.loads((out / "run.json").read_text())
+    argv = recorded["argv"]
+    assert argv[argv.index("--trainer.max-steps") + 1] == str(step)
+    assert recorded["schedule"]["max_steps"] == step and recorded["schedule"]["steps"] == step
+    assert [p.name for p in (out / "checkpoints").glob("step-*.pt")] == [f"step-{step:06d}.pt"]
