@@ -14,11 +14,10 @@ method's run directory.
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 
-from omnire.bench.train import TrainBenchArgs, budget_text, markdown_table, rasterizer_line, run_bench
-from omnire.io.atomic import atomic_write_text
+from omnire.bench.train import (TrainBenchArgs, budget_text, markdown_table, rasterizer_line, reporter, run_bench,
+                               save_figure)
 from omnire.lidar_evaluation import BASELINES, lidar_markdown_table
 
 LIDAR_FLAG = "--method.lidar.enabled"
@@ -76,22 +75,9 @@ def plot(results: list[dict], path: Path) -> None:
         ax.set_ylabel("metres")
         ax.set_yscale("log")
         ax.grid(alpha=0.3, which="both")
-    axes[0].legend(fontsize=8)
-    fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
-
-
-def _report(args: LidarBenchArgs, results: list[dict], console) -> int:
-    table = lidar_table(results, args)
-    atomic_write_text(args.output / "results.md", table)
-    if args.plot:
-        plot(results, args.output / "lidar_error_vs_time.png")
-    console.print(table)
-    return 0 if all(r["exit_code"] == 0 for r in results) else 1
+    save_figure(fig, axes, path)
 
 
 def main(argv: list[str], plugins) -> int:
-    return run_bench(LidarBenchArgs, argv, plugins, "omnire bench lidar", _report, extra_method_args=LIDAR_FLAG)
+    return run_bench(LidarBenchArgs, argv, plugins, "omnire bench lidar",
+                     reporter(lidar_table, plot, "lidar_error_vs_time.png"), extra_method_args=LIDAR_FLAG)

@@ -238,6 +238,13 @@ def plot(results: list[dict], path: Path) -> None:
         ax.set_xlabel("training time (s, evaluation excluded)")
         ax.set_ylabel("PSNR (dB)")
         ax.grid(alpha=0.3)
+    save_figure(fig, axes, path)
+
+
+def save_figure(fig, axes, path: Path) -> None:
+    """A benchmark's figure, legend in its first panel, written to ``path`` (PNG) atomically."""
+    import matplotlib.pyplot as plt
+
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")
@@ -247,7 +254,8 @@ def plot(results: list[dict], path: Path) -> None:
 
 
 def main(argv: list[str], plugins) -> int:
-    return run_bench(TrainBenchArgs, argv, plugins, "omnire bench train", _report)
+    return run_bench(TrainBenchArgs, argv, plugins, "omnire bench train",
+                     reporter(markdown_table, plot, "psnr_vs_time.png"))
 
 
 def run_bench(args_type: type, argv: list[str], plugins, prog: str, report, extra_method_args: str = "") -> int:
@@ -316,10 +324,17 @@ def run_bench(args_type: type, argv: list[str], plugins, prog: str, report, extr
     return report(args, results, console)
 
 
-def _report(args: TrainBenchArgs, results: list[dict], console) -> int:
-    table = markdown_table(results, args)
-    atomic_write_text(args.output / "results.md", table)
-    if args.plot:
-        plot(results, args.output / "psnr_vs_time.png")
-    console.print(table)
-    return 0 if all(r["exit_code"] == 0 for r in results) else 1
+def reporter(table_of, plot_of, plot_name: str):
+    """The ``report`` of :func:`run_bench`: ``table_of(results, args)`` written to
+    results.md and printed, ``plot_of(results, path)`` to ``plot_name`` unless --no-plot;
+    exit status 1 when a method failed."""
+
+    def report(args: TrainBenchArgs, results: list[dict], console) -> int:
+        table = table_of(results, args)
+        atomic_write_text(args.output / "results.md", table)
+        if args.plot:
+            plot_of(results, args.output / plot_name)
+        console.print(table)
+        return 0 if all(r["exit_code"] == 0 for r in results) else 1
+
+    return report

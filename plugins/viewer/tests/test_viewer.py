@@ -4,6 +4,7 @@ rasterizer; the time slider moves and re-skins actors; hide/move edits are the s
 errors for a run without checkpoint, a busy port and a bad scenario."""
 from __future__ import annotations
 
+import contextlib
 import math
 import socket
 import time
@@ -36,11 +37,20 @@ def recon(tiny_run, plugins):
     return Reconstruction.from_run(tiny_run, plugins)
 
 
+@contextlib.contextmanager
+def opened(recon):
+    """A viewer of ``recon`` on a free port at :data:`FRAME`, closed afterwards."""
+    v = Viewer(ViewerScene(recon), "127.0.0.1", 0, frame=FRAME, verbose=False)
+    try:
+        yield v
+    finally:
+        v.close()
+
+
 @pytest.fixture()
 def viewer(recon):
-    v = Viewer(ViewerScene(recon), "127.0.0.1", 0, frame=FRAME, verbose=False)
-    yield v
-    v.close()
+    with opened(recon) as v:
+        yield v
 
 
 def blocks(image: np.ndarray, size: int) -> np.ndarray:
@@ -52,6 +62,16 @@ def blocks(image: np.ndarray, size: int) -> np.ndarray:
 def histogram(image: np.ndarray, bins: int = 16) -> np.ndarray:
     """(3, bins) per-channel histograms of an image in [0, 1], each summing to 1."""
     return np.stack([np.histogram(image[..., c], bins=bins, range=(0, 1))[0] / image[..., c].size for c in range(3)])
+
+
+def page_client(browser: HeadlessChromium, viewer: Viewer):
+    """Open ``viewer``'s page in ``browser``; the viser client of that page once it connects."""
+    browser.navigate(viewer.url)
+    deadline = time.monotonic() + 60
+    while not viewer.server.get_clients():
+        assert time.monotonic() < deadline, f"the page never connected: {browser.log_tail()}"
+        time.sleep(0.1)
+    return next(iter(viewer.server.get_clients().values()))
 
 
 def settled_screenshot(browser: HeadlessChromium, drawn: bool, timeout: float = 60.0) -> np.ndarray:
@@ -78,12 +98,7 @@ def test_browser_draws_the_scene_like_the_server(viewer, recon, tmp_path):
     viewer.gui_cameras.value = False
     W, H = 360, 240
     with HeadlessChromium(width=W, height=H) as browser:
-        browser.navigate(viewer.url)
-        deadline = time.monotonic() + 60
-        while not viewer.server.get_clients():
-            assert time.monotonic() < deadline, f"the page never connected: {browser.log_tail()}"
-            time.sleep(0.1)
-        client = next(iter(viewer.server.get_clients().values()))
+        client = page_client(browser, viewer)
         cam = recon.scene.cameras[0]
         viewer.look_through(client, cam.cam_to_world[FRAME], cam.intrinsics, cam.height)
         assert viewer.wait_idle()
@@ -468,9 +483,8 @@ def lidar_recon(tiny_lidar_run, plugins):
 
 @pytest.fixture()
 def lidar_viewer(lidar_recon):
-    v = Viewer(ViewerScene(lidar_recon), "127.0.0.1", 0, frame=FRAME, verbose=False)
-    yield v
-    v.close()
+    with opened(lidar_recon) as v:
+        yield v
 
 
 def test_ramp_colours_are_the_anchors_linearly_interpolated():
@@ -586,12 +600,7 @@ def test_browser_draws_the_sweep(lidar_viewer, lidar_recon, tmp_path):
     f = 0.5 * H / math.tan(0.5 * math.radians(60.0))
     K = np.array([[f, 0.0, W / 2], [0.0, f, H / 2], [0.0, 0.0, 1.0]])
     with HeadlessChromium(width=W, height=H) as browser:
-        browser.navigate(v.url)
-        deadline = time.monotonic() + 60
-        while not v.server.get_clients():
-            assert time.monotonic() < deadline, f"the page never connected: {browser.log_tail()}"
-            time.sleep(0.1)
-        client = next(iter(v.server.get_clients().values()))
+        client = page_client(browser, v)
         v.look_through(client, c2w, K, H)
         assert browser.evaluate(SHOW_ONLY_CANVAS) == [W, H]
         shot = settled_screenshot(browser, drawn=True)
