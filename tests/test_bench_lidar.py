@@ -84,3 +84,19 @@ def test_bench_lidar_rows_equal_the_evaluation_and_the_baselines_run_directly(tm
     rows = {line.split("│")[1].strip(): line for line in ev.stdout.splitlines() if line.count("│") > 5}
     assert format_value(nearest["median_abs_range_error"], 4) in rows["nearest training sweep, moved"]
     assert format_value(again["median_abs_range_error"], 4) in rows["rendered"]
+
+
+@pytest.mark.parametrize("case", ["no budget", "no scene", "report without results", "bad methods entry"])
+def test_bad_bench_lidar_arguments_are_one_line(case, tmp_path, capsys):
+    from hostile import run_case
+
+    scene = ["--dataparser", "pandaset", "--data", str(DEMO_SCENE)]
+    argv, needle = {
+        "no budget": (["--steps", "0", *scene], "expected a step budget, a time budget or both"),
+        "no scene": (["--steps", "4"], "--dataparser and --data are required"),
+        "report without results": (["--report-only"], "no results.json to report from"),
+        "bad methods entry": (["--methods", "=3dgs", "--steps", "4", *scene], "expected METHOD or LABEL=METHOD"),
+    }[case]
+    run_case(f"bench lidar: {case}", ["bench", "lidar", *argv, "--output", str(tmp_path / "out")], capsys,
+             [tmp_path], needles=(needle,), surface="sim")
+    assert not (tmp_path / "out" / "results.json").exists()
