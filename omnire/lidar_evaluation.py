@@ -87,7 +87,8 @@ def evaluate_lidar(recon, frames: Optional[Sequence[int]] = None, sectors: Optio
 def lidar_baselines(scene: SceneData) -> Optional[dict[str, dict]]:
     """Both baselines (:func:`~omnire.lidar_baselines.baseline_metrics`) on the held-out
     sweeps, built from the training sweeps; None when no held-out or training frame has a
-    sweep, or the sensor has neither a beam model nor anything to measure (no LiDAR)."""
+    sweep or the sensor has no beam model (the mesh needs its grid, the nearest sweep its
+    angular tolerance)."""
     if not lidar_test_frames(scene) or scene.lidar.beam_model is None:
         return None
     have = set(scene.lidar.available_frames())
