@@ -46,6 +46,8 @@ def omnire_register_commands(registry) -> None:
                                   commands.bench_raster_main))
     registry.register(CommandSpec("bench train", "methods against each other: error against training time",
                                   commands.bench_train_main))
+    registry.register(CommandSpec("bench lidar", "methods with LiDAR learning against the LiDAR baselines on "
+                                  "held-out sweeps (JSON + table + error-vs-time plot)", commands.bench_lidar_main))
     registry.register(CommandSpec("bench step", "per-stage time of a training step (fused / unfused render paths)",
                                   commands.bench_step_main))
 

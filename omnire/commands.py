@@ -1,4 +1,4 @@
-"""The core's commands: train, eval, render, plugins, bench raster / train / step.
+"""The core's commands: train, eval, render, plugins, bench raster / train / lidar / step.
 
 User errors (:class:`~omnire.errors.UserError`) propagate to the CLI, which prints them as
 one line; anything else is a bug and keeps its traceback.
@@ -19,6 +19,7 @@ from omnire.ui import output_console
 
 def train_main(argv: list[str], plugins) -> int:
     from omnire.evaluation import format_camera_table, format_table
+    from omnire.lidar_evaluation import format_lidar_table
     from omnire.trainer import Trainer
 
     config = parse_train_args(argv, plugins)
@@ -31,6 +32,8 @@ def train_main(argv: list[str], plugins) -> int:
     console.print(format_table(result, f"{config.method_name} on {trainer.scene.name} at step {trainer.step}"))
     if len(trainer.scene.cameras) > 1 and (cameras := format_camera_table(result)) is not None:
         console.print(cameras)
+    if (lidar := format_lidar_table(result)) is not None:
+        console.print(lidar)
     for warning in result.get("warnings", []):
         console.print(f"[yellow]warning:[/] {warning}")
     return 0
@@ -52,19 +55,23 @@ def eval_main(argv: list[str], plugins) -> int:
     import torch
 
     from omnire.evaluation import evaluate, format_camera_table, format_table
+    from omnire.lidar_evaluation import format_lidar_table, lidar_baselines
     from omnire.observations import Observations
     from omnire.runtime import Reconstruction
 
     args = tyro.cli(EvalArgs, args=argv, prog="omnire eval")
     recon = Reconstruction.from_run(args.run_dir, plugins, args.checkpoint)
     scene = recon.scene
+    baselines = lidar_baselines(scene) if recon.renders_lidar else None
     with torch.no_grad():
         result = evaluate(recon, Observations(scene, recon.device), scene.views(scene.train_frames),
-                          scene.views(scene.test_frames), args.train_views)
+                          scene.views(scene.test_frames), args.train_views, baselines)
     console = output_console()
     console.print(format_table(result, f"{recon.run_info.method} at step {recon.step}"))
     if len(scene.cameras) > 1 and (cameras := format_camera_table(result)) is not None:
         console.print(cameras)
+    if (lidar := format_lidar_table(result)) is not None:
+        console.print(lidar)
     return 0
 
 
@@ -236,6 +243,12 @@ def bench_train_main(argv: list[str], plugins) -> int:
     from omnire.bench import train
 
     return int(train.main(argv, plugins) or 0)
+
+
+def bench_lidar_main(argv: list[str], plugins) -> int:
+    from omnire.bench import lidar
+
+    return int(lidar.main(argv, plugins) or 0)
 
 
 def bench_step_main(argv: list[str], plugins) -> int:

@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Optional
 
 import numpy as np
 import torch
 
 from omnire.data.scene import View
+from omnire.lidar_evaluation import evaluate_lidar
 from omnire.metrics import chamfer_distance, depth_errors, psnr, ssim
 
 
@@ -99,9 +101,13 @@ def evaluate_views(recon, observations, views: list[View], with_copy_baseline: b
     return out
 
 
-def evaluate(recon, observations, train_views: list[View], test_views: list[View], train_view_limit: int = 0) -> dict:
+def evaluate(recon, observations, train_views: list[View], test_views: list[View], train_view_limit: int = 0,
+             lidar_baselines: Optional[dict] = None) -> dict:
     """Reconstruction metrics on (at most ``train_view_limit``, evenly spaced; 0 = all)
-    training views and novel-view metrics on the held-out views."""
+    training views and novel-view metrics on the held-out views; for a run that learned
+    LiDAR, ``lidar``: its held-out sweeps' figures (omnire/lidar_evaluation.py), with
+    ``lidar_baselines`` (:func:`~omnire.lidar_evaluation.lidar_baselines` of the scene,
+    computed once by the caller: they do not change with training) beside them."""
     if train_view_limit and len(train_views) > train_view_limit:
         idx = np.linspace(0, len(train_views) - 1, train_view_limit).round().astype(int)
         train_views = [train_views[i] for i in idx]
@@ -112,6 +118,11 @@ def evaluate(recon, observations, train_views: list[View], test_views: list[View
     }
     if test_views:
         result["novel_view"] = evaluate_views(recon, observations, test_views, with_copy_baseline=True)
+    lidar = evaluate_lidar(recon)
+    if lidar is not None:
+        result["lidar"] = lidar
+        if lidar_baselines:
+            result["lidar_baselines"] = lidar_baselines
     return result
 
 

@@ -141,7 +141,7 @@ def sweep_triangles(rays: SweepRays, model: BeamModel, max_incidence_deg: float 
     B, A = model.num_beams, model.num_azimuths
     if len(rays) != B * A:
         raise SceneDataError(f"sweep_triangles: {len(rays)} rays, expected {B} x {A} (the beam model's grid)")
-    grid = (rays.beam * A + rays.column).argsort()  # ray index of cell (beam, column)
+    grid = (rays.beam.astype(np.int64) * A + rays.column).argsort()  # ray index of cell (beam, column); int16 beams overflow
     rows = model.order()  # beams top to bottom
     top, bottom = rows[:-1], rows[1:]
     col = np.arange(A)

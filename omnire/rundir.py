@@ -240,13 +240,17 @@ class RunDirectory:
 
 
 def flatten_eval(ev: dict) -> dict:
-    """An evaluation record -> one flat dict: top-level numbers plus ``reconstruction.*`` and
-    ``novel_view.*`` (the keys the benchmark tables and plots read)."""
+    """An evaluation record -> one flat dict: top-level numbers plus ``reconstruction.*``,
+    ``novel_view.*`` and ``lidar.*`` (the keys the benchmark tables and plots read), and each
+    LiDAR baseline's figures as ``lidar_baselines.<baseline>.*``."""
     flat = {k: v for k, v in ev.items() if not isinstance(v, dict)}
-    for split in ("reconstruction", "novel_view"):
+    for split in ("reconstruction", "novel_view", "lidar"):
         for k, v in (ev.get(split) or {}).items():
             if not isinstance(v, dict):
                 flat[f"{split}.{k}"] = v
+    for name, figures in (ev.get("lidar_baselines") or {}).items():
+        for k, v in figures.items():
+            flat[f"lidar_baselines.{name}.{k}"] = v
     return flat
 
 

@@ -180,6 +180,7 @@ class Trainer:
         self.train_seconds = 0.0
         self._step_started = time.perf_counter()  # the current step's start (the schedule's clock)
         self.lidar = LidarTraining(self.recon, tc.seed + 2) if self.model.lidar_features is not None else None
+        self._lidar_baselines: Optional[dict] = None  # the held-out sweeps' baselines, at the first evaluation
         self._sh_bands_degree: Optional[int] = None  # the degree fit_sh_bands last stored bands for
         self.observers: list = []
         self._stop_signal: Optional[int] = None
@@ -545,8 +546,12 @@ class Trainer:
     def evaluate(self, write: bool = True) -> dict:
         from omnire.evaluation import evaluate
 
+        if self.recon.renders_lidar and self._lidar_baselines is None:
+            from omnire.lidar_evaluation import lidar_baselines
+
+            self._lidar_baselines = lidar_baselines(self.scene) or {}  # once: training does not change them
         result = evaluate(self.recon, self.observations, self.train_views, self.test_views,
-                          self.config.trainer.eval_train_views)
+                          self.config.trainer.eval_train_views, self._lidar_baselines)
         if write and self.run is not None:
             atomic_write_text(self.run.path / "eval" / f"step-{self.step:06d}.json", json.dumps(result, indent=2))
         return result

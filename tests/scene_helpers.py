@@ -109,11 +109,23 @@ TINY_RUN_METHOD_ARGS = ["--method.rasterizer", "torch", "--method.nodes.backgrou
                         "--method.nodes.smpl.gaussians-per-person", "300"]
 
 
-def make_tiny_run(root):
+TINY_LIDAR_RUN_KEY = "omnire-tiny-lidar-run-v1"  # bump when the recipe of make_tiny_lidar_run changes
+TINY_LIDAR_RUN_METHOD_ARGS = ["--method.rasterizer", "cpu", *TINY_RUN_METHOD_ARGS[2:], "--method.lidar.enabled",
+                              "--method.lidar.rays-per-step", "2000"]
+
+
+def make_tiny_lidar_run(root):
+    """:func:`make_tiny_run` with LiDAR learning on (``TINY_LIDAR_RUN_METHOD_ARGS``: the
+    native rasterizer, whose LiDAR path is fast enough to render whole sweeps in a test)."""
+    return make_tiny_run(root, TINY_LIDAR_RUN_METHOD_ARGS)
+
+
+def make_tiny_run(root, method_args=None):
     """A tiny trained OmniRe run (background, rigid cars, SMPL pedestrians, sky): ``omnire
-    synth urban --tiny`` with one camera under ``root``, two training steps; returns the run
-    directory (reused when ``root`` already holds it: one per test session, shared by the
-    plugins' tests through the ``TINY_RUN_KEY`` folder)."""
+    synth urban --tiny`` with one camera under ``root``, two training steps with
+    ``method_args`` (default ``TINY_RUN_METHOD_ARGS``); returns the run directory (reused
+    when ``root`` already holds it: one per test session, shared by the plugins' tests
+    through the ``TINY_RUN_KEY`` folder)."""
     import os
 
     import torch
@@ -133,6 +145,7 @@ def make_tiny_run(root):
     assert synth(["urban", str(scene), "--tiny", "--num-cameras", "1"], plugins) in (0, None)
     argv = ["omnire", "processed", "--data", str(scene), "--trainer.max-steps", "2",
             "--trainer.output-dir", str(root / "runs"), "--trainer.run-name", "omnire", "--trainer.no-progress",
-            "--trainer.eval-train-views", "1", "--trainer.threads", "1", *TINY_RUN_METHOD_ARGS]
+            "--trainer.eval-train-views", "1", "--trainer.threads", "1",
+            *(TINY_RUN_METHOD_ARGS if method_args is None else method_args)]
     Trainer(parse_train_args(argv, plugins), plugins, argv=argv).train()
     return run

@@ -273,6 +273,19 @@ def test_offset_and_turn_limits(viewer):
     _ws_case(viewer, "offset 1e308, turn 1e12, unknown actor", body)
 
 
+def test_lidar_controls_from_a_client(viewer):
+    """The tiny run learned no LiDAR: its disabled "Rendered sweep" box ticked by a client,
+    and a colour outside the dropdown's choices, are refused with a notification."""
+    def body(client: Client) -> bool:
+        client.set_value(client.uuid_of("Rendered sweep"), True)
+        assert client.notification("this run learned no LiDAR") is not None, "ticking the disabled box was not refused"
+        client.set_value(client.uuid_of("Colour by"), "x" * 1000)
+        assert client.notification("Colour by") is not None, "an unknown colour was not refused"
+        return True
+
+    _ws_case(viewer, "LiDAR sweep on a run without LiDAR, unknown colour", body)
+
+
 def test_a_client_cannot_change_a_controls_range(viewer):
     def body(client: Client) -> bool:
         client.send({"type": "GuiUpdateMessage", "uuid": client.uuid_of("Width (px)"), "updates": {"max": 10**9}})

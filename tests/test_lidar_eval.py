@@ -269,6 +269,22 @@ def test_triangles_across_a_depth_jump_are_dropped():
     assert len(tri) == 2 * (MODEL.num_beams - 1) * (MODEL.num_azimuths - 8)  # all others kept
 
 
+def test_triangles_of_a_pandar64_sized_grid():
+    """64 beams x 1800 columns (more cells than an int16 beam index times the column count
+    holds): inside a sphere around the sensor every 2 x 2 block gives its two triangles, and
+    each joins neighbouring cells."""
+    model = BeamModel(np.linspace(15.0, -25.0, 64), 0.2, 200.0, 0.3, "pandar64-sized")
+    times, poses = track(speed=0.0, yaw_rate=0.0)
+    d, beam, col = model.directions()
+    rays = sweep_rays(poses[0, :3, 3] + 10.0 * d, np.full(len(d), times[0]), times, poses,
+                      beams=beam.astype(np.int16), model=model)
+    tri = sweep_triangles(rays, model)
+    assert len(tri) == 2 * (model.num_beams - 1) * model.num_azimuths
+    b, c = rays.beam[tri].astype(int), rays.column[tri]
+    assert (b.max(1) - b.min(1) == 1).all()  # adjacent beams (the elevations are in order)
+    assert np.isin((c.max(1) - c.min(1)) % (model.num_azimuths - 2), (0, 1)).all()  # adjacent columns, wrapping
+
+
 def test_baseline_metrics_of_a_scene():
     """baseline_metrics scores a held-out sweep against the nearest training sweep (the
     earlier on a tie) and the mesh of the 4 nearest, with the scene's boxes at the frame."""

@@ -28,6 +28,7 @@ import tyro
 
 from omnire.bench.machine import machine_info
 from omnire.io.atomic import atomic_write_text
+from omnire.lidar_evaluation import lidar_markdown_table
 from omnire.rundir import RunDirectory
 
 
@@ -136,7 +137,10 @@ def budget_text(args: TrainBenchArgs) -> str:
                        + ([f"{args.seconds:.0f} s of training"] if args.seconds else []))
 
 
-def markdown_table(results: list[dict], args: TrainBenchArgs) -> str:
+def markdown_table(results: list[dict], args: TrainBenchArgs, with_lidar: bool = True) -> str:
+    """The comparison in the paper's layout (the copy-nearest-frame baseline, the rasterizer,
+    a same-step table when a time budget stopped methods apart, variants) and, with
+    ``with_lidar``, the LiDAR table of the methods that learned LiDAR."""
     budget = budget_text(args)
     lines = [
         f"Scene: `{args.data}` ({args.dataparser} {args.dataparser_args}); budget per method: {budget}; "
@@ -169,6 +173,10 @@ def markdown_table(results: list[dict], args: TrainBenchArgs) -> str:
             + " | - | - | - | - | - | - | - | - |")
     lines += ["", rasterizer_line(results)]
     lines += _same_step_table(results)
+    lidar = lidar_markdown_table(results) if with_lidar else []
+    if lidar:
+        lines += ["", "LiDAR on the held-out sweeps (methods trained with --method.lidar.enabled; the baselines "
+                  "need no training, docs/lidar.md):", "", *lidar]
     variants = [r for r in results if r.get("flags") or r.get("base_method", r["method"]) != r["method"]]
     if variants:
         lines += ["", "Variants: " + "; ".join(f"{r['method']} = `{r['base_method']} {shlex.join(r['flags'])}`"
@@ -230,6 +238,13 @@ def plot(results: list[dict], path: Path) -> None:
         ax.set_xlabel("training time (s, evaluation excluded)")
         ax.set_ylabel("PSNR (dB)")
         ax.grid(alpha=0.3)
+    save_figure(fig, axes, path)
+
+
+def save_figure(fig, axes, path: Path) -> None:
+    """A benchmark's figure, legend in its first panel, written to ``path`` (PNG) atomically."""
+    import matplotlib.pyplot as plt
+
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")
@@ -239,9 +254,18 @@ def plot(results: list[dict], path: Path) -> None:
 
 
 def main(argv: list[str], plugins) -> int:
+    return run_bench(TrainBenchArgs, argv, plugins, "omnire bench train",
+                     reporter(markdown_table, plot, "psnr_vs_time.png"))
+
+
+def run_bench(args_type: type, argv: list[str], plugins, prog: str, report, extra_method_args: str = "") -> int:
+    """Parse ``argv`` as ``args_type`` (:class:`TrainBenchArgs` or a subclass), train every
+    ``--methods`` entry (``extra_method_args`` appended to ``--method-args``), keep
+    ``results.json`` current after each, and hand the results to ``report(args, results,
+    console)``; ``--report-only`` reports from the saved results.json."""
     from rich.console import Console
 
-    args = tyro.cli(TrainBenchArgs, args=argv, prog="omnire bench train")
+    args = tyro.cli(args_type, args=argv, prog=prog)
     console = Console()
     if args.report_only:
         path = args.output / "results.json"
@@ -252,15 +276,17 @@ def main(argv: list[str], plugins) -> int:
         # results.json stores JSON scalars; give them back the fields' types (data is a path).
         kinds = {"data": Path, "dataparser": str, "dataparser_args": str, "steps": int, "seconds": float}
         kept = {k: (None if v is None else kinds[k](v)) for k, v in saved["args"].items() if k in kinds}
-        return _report(dataclasses.replace(args, **kept), saved["results"], console)
+        return report(dataclasses.replace(args, **kept), saved["results"], console)
     from omnire.errors import ConfigError
 
     if args.dataparser is None or args.data is None:
-        raise ConfigError("omnire bench train: --dataparser and --data are required (e.g. --dataparser pandaset "
+        raise ConfigError(f"{prog}: --dataparser and --data are required (e.g. --dataparser pandaset "
                           "--data data/demo/pandaset_002)")
     if args.steps < 0 or args.seconds < 0 or not (args.steps or args.seconds > 0):
-        raise ConfigError(f"omnire bench train: --steps {args.steps} --seconds {args.seconds}: expected a step "
+        raise ConfigError(f"{prog}: --steps {args.steps} --seconds {args.seconds}: expected a step "
                           "budget, a time budget or both (>= 0, not both 0)")
+    if extra_method_args:
+        args = dataclasses.replace(args, method_args=f"{args.method_args} {extra_method_args}".strip())
     methods = list(args.methods) or plugins.methods.names()
     try:
         labels = [parse_entry(m)[0] for m in methods]
@@ -295,13 +321,20 @@ def main(argv: list[str], plugins) -> int:
         atomic_write_text(args.output / "results.json", json.dumps(
             {"args": json.loads(json.dumps(dataclasses.asdict(args), default=str)), "machine": machine,
              "results": results}, indent=2))
-    return _report(args, results, console)
+    return report(args, results, console)
 
 
-def _report(args: TrainBenchArgs, results: list[dict], console) -> int:
-    table = markdown_table(results, args)
-    atomic_write_text(args.output / "results.md", table)
-    if args.plot:
-        plot(results, args.output / "psnr_vs_time.png")
-    console.print(table)
-    return 0 if all(r["exit_code"] == 0 for r in results) else 1
+def reporter(table_of, plot_of, plot_name: str):
+    """The ``report`` of :func:`run_bench`: ``table_of(results, args)`` written to
+    results.md and printed, ``plot_of(results, path)`` to ``plot_name`` unless --no-plot;
+    exit status 1 when a method failed."""
+
+    def report(args: TrainBenchArgs, results: list[dict], console) -> int:
+        table = table_of(results, args)
+        atomic_write_text(args.output / "results.md", table)
+        if args.plot:
+            plot_of(results, args.output / plot_name)
+        console.print(table)
+        return 0 if all(r["exit_code"] == 0 for r in results) else 1
+
+    return report

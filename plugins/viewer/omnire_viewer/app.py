@@ -4,8 +4,9 @@ Layout: the browser draws every object of :class:`~omnire_viewer.scene.ViewerSce
 Gaussian splats (one scene node per non-actor node and per actor, actors placed by their
 box pose, the sky as a far shell of splats); the control panel holds the time slider, the
 per-node and per-actor toggles, the selected actor's identity and edits (hide, move, turn),
-the dataset cameras (click a frustum to look through it), and the server render of the
-current browser view next to it. The scene shown is a simulation (``omnire_sim``): a
+the dataset cameras (click a frustum to look through it), the server render of the
+current browser view next to it, and, for a run that learned LiDAR, its rendered sweep at
+the slider's moment as a point cloud coloured by intensity or range (omnire_viewer/lidar.py). The scene shown is a simulation (``omnire_sim``): a
 scenario file's edits, if the viewer was opened with one, and the panel's hide / move edits,
 resolved by :class:`omnire_sim.Simulation` for the browser objects and the server render alike.
 
@@ -36,6 +37,7 @@ import numpy as np
 from omnire.api import UserError, rotmat_to_quat
 from omnire_viewer.edits import ActorEdit
 from omnire_viewer.gate import Gate, is_loopback
+from omnire_viewer.lidar import COLOUR_BY, point_colours
 from omnire_viewer.scene import ViewerScene, camera_from_view
 
 BOX_COLOUR = (40, 160, 255)
@@ -43,6 +45,8 @@ SELECTED_COLOUR = (255, 140, 0)
 MIN_RENDER_WIDTH, MAX_RENDER_WIDTH = 160, 1920
 """The server render's width range in pixels (the panel's slider; its height follows the
 client's aspect, capped at the same maximum)."""
+LIDAR_POINT_SIZE = 0.08
+"""Diameter of a drawn LiDAR return (metres, in the scene)."""
 MAX_OFFSET_M = 1000.0
 """Largest offset of a moved actor along each world axis (metres)."""
 MAX_TURN_DEG = 360.0
@@ -127,6 +131,12 @@ class Viewer:
         self._boxes: dict[str, object] = {}
         self._frusta: dict[str, object] = {}
         self._sky_handle = None
+        self._lidar_handle = None
+        self._lidar_colour = COLOUR_BY[0]
+        self._lidar_key: Optional[tuple] = None  # what the drawn sweep was rendered for
+        self._lidar_sweep: Optional[tuple[np.ndarray, np.ndarray]] = None
+        self._lidar_drawn_colour: Optional[str] = None
+        self._lidar_seconds = 0.0
         self.selected: Optional[str] = None
         self._stop = threading.Event()
         self._dirty = threading.Event()
@@ -224,6 +234,15 @@ class Viewer:
                                                   visible=False)
             self.gui_recolour = gui.add_button("Recolour splats for this view",
                                                hint="Evaluate the view-dependent (SH) colours from here")
+        with gui.add_folder("LiDAR"):
+            can = sc.renders_lidar
+            self.gui_lidar = gui.add_checkbox(
+                "Rendered sweep", False, disabled=not can,
+                hint="The LiDAR the run learned, rendered at this moment with the edits: one point per return")
+            self.gui_lidar_colour = gui.add_dropdown("Colour by", COLOUR_BY, initial_value=COLOUR_BY[0],
+                                                     disabled=not can)
+            self.gui_lidar_note = gui.add_markdown(
+                "" if can else "This run learned no LiDAR (train it with `--method.lidar.enabled`).")
 
         def redraw(_event=None) -> None:
             self._dirty.set()
@@ -249,6 +268,8 @@ class Viewer:
         self.gui_actor_reset.on_click(lambda _e: self.reset_edits())
         for tid, box in self.gui_actor_toggles.items():
             box.on_update(lambda _e, tid=tid: self.set_hidden(tid, not self.gui_actor_toggles[tid].value))
+        self.gui_lidar.on_update(self._lidar_toggled)
+        self.gui_lidar_colour.on_update(self._lidar_colour_chosen)
         self.gui_render_button.on_click(lambda event: self.render_for_client(event.client))
         self.gui_recolour.on_click(lambda event: self.recolour(event.client))
 
@@ -257,6 +278,21 @@ class Viewer:
             tid = self.scene.pick(event.ray_origin, event.ray_direction, self.frame)
             if tid is not None:
                 self.select(tid)
+
+    def _lidar_toggled(self, event) -> None:
+        if self.gui_lidar.value and not self.scene.renders_lidar:  # a disabled box set anyway
+            self.refuse(event.client, self.gui_lidar, False, "Rendered sweep: this run learned no LiDAR")
+            return
+        self._dirty.set()
+
+    def _lidar_colour_chosen(self, event) -> None:
+        value = self.gui_lidar_colour.value
+        if value not in COLOUR_BY:
+            self.refuse(event.client, self.gui_lidar_colour, self._lidar_colour,
+                        f"Colour by {str(value)[:40]!r}: expected one of {', '.join(COLOUR_BY)}")
+            return
+        self._lidar_colour = value
+        self._dirty.set()
 
     def _info_text(self, title: str, extra: str = "") -> str:
         sc = self.scene
@@ -432,6 +468,7 @@ class Viewer:
             for name in [n for n in self._handles if n not in objects]:
                 self._handles.pop(name)[0].remove()
             self._draw_sky(hidden)
+            self._draw_lidar(frame)
             self._draw_boxes(frame, hidden)
             self._draw_cameras(frame)
 
@@ -446,6 +483,34 @@ class Viewer:
             self._sky_handle = self.server.scene.add_gaussian_splats("/sky", sky.centers, sky.covariances, sky.rgbs,
                                                                      sky.opacities)
         self._sky_handle.visible = env[0] not in hidden
+
+    def _draw_lidar(self, frame: float) -> None:
+        """The rendered sweep at ``frame`` as a point cloud (``/lidar``) while its box is
+        ticked: rendered again when the moment, the edits or the scene changed, recoloured
+        alone when only the colour choice did. The node toggles hide splats, not returns
+        (the sweep alone is shown with every node off)."""
+        if not (self.gui_lidar.value and self.scene.renders_lidar):
+            if self._lidar_handle is not None:
+                self._lidar_handle.visible = False
+            return
+        key = (frame, self.scene.edits.version, id(self.scene.recon))
+        if key != self._lidar_key:
+            t0 = time.perf_counter()
+            self._lidar_sweep = self.scene.lidar_sweep(frame)
+            self._lidar_seconds = time.perf_counter() - t0
+            self._lidar_key, self._lidar_drawn_colour = key, None
+        if self._lidar_drawn_colour != self._lidar_colour:
+            points, sensor = self._lidar_sweep
+            colours, scale = point_colours(points, sensor, self._lidar_colour)
+            xyz = np.stack([points["x"], points["y"], points["z"]], axis=-1).astype(np.float32)
+            if self._lidar_handle is not None:
+                self._lidar_handle.remove()
+            self._lidar_handle = self.server.scene.add_point_cloud("/lidar", xyz, colours, point_size=LIDAR_POINT_SIZE,
+                                                                   point_shape="circle", precision="float32")
+            self._lidar_drawn_colour = self._lidar_colour
+            self.gui_lidar_note.content = (f"{len(points):,} points at frame {frame:.1f}, rendered in "
+                                           f"{self._lidar_seconds:.2f} s; colour: {scale}")
+        self._lidar_handle.visible = True
 
     def _draw_boxes(self, frame: float, hidden: frozenset[str]) -> None:
         boxes = self.scene.actor_boxes(frame) if self.gui_boxes.value else {}

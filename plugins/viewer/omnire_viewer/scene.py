@@ -28,8 +28,10 @@ from omnire.api import (
     Gaussians,
     SceneTime,
     rotmat_to_quat,
+    sensor_path,
 )
 from omnire_sim import Scenario, Simulation
+from omnire_sim.cli import sim_sweep
 from omnire_viewer.edits import ActorEdit, EditModel, drawn_actors
 from omnire_viewer.splats import SplatArrays, sky_splats, splat_arrays
 
@@ -319,6 +321,28 @@ class ViewerScene:
         (4, 4), K (3, 3), width, height)."""
         f = int(round(min(max(frame, 0), self.num_frames - 1)))
         return [(c.name, c.cam_to_world[f], c.intrinsics, c.width, c.height) for c in self.scene.cameras]
+
+    # ------------------------------------------------------------------ LiDAR
+    @property
+    def renders_lidar(self) -> bool:
+        """The run learned LiDAR (``--method.lidar.enabled``) and its scene has sweeps."""
+        lidar = self.scene.lidar
+        return bool(self.recon.renders_lidar and lidar is not None and len(lidar.available_frames()))
+
+    @torch.no_grad()
+    def lidar_sweep(self, frame: float) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """The rendered sweep of the simulated scene at ``frame`` (``omnire_sim.cli.sim_sweep``,
+        as ``omnire sim --lidar`` renders it: the edits apply, the panel's node toggles,
+        which only choose the splats drawn, do not): (points, structured (P,) of
+        ``omnire.api.POINT_FIELDS``; sensor positions (P, 3) when each point's ray fired).
+        None when the run learned no LiDAR."""
+        if not self.renders_lidar:
+            return None
+        t = self.time(frame)
+        with self.lock:
+            points = sim_sweep(self.simulation(), t)
+            sensor = sensor_path(self.scene).at(points["time"])[:, :3, 3]
+        return points, sensor
 
     # ------------------------------------------------------------------ server render
     @torch.no_grad()

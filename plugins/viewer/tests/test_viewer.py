@@ -4,6 +4,7 @@ rasterizer; the time slider moves and re-skins actors; hide/move edits are the s
 errors for a run without checkpoint, a busy port and a bad scenario."""
 from __future__ import annotations
 
+import contextlib
 import math
 import socket
 import time
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from omnire.api import Reconstruction, UserError, rotmat_to_quat
+from omnire.api import Reconstruction, UserError, rotmat_to_quat, sensor_path
 from omnire_sim import ActorEdit as SimActorEdit
 from omnire_sim import Placement, Scenario, Simulation, load_scenario
 from omnire_viewer.app import PortInUseError, Viewer
@@ -36,11 +37,20 @@ def recon(tiny_run, plugins):
     return Reconstruction.from_run(tiny_run, plugins)
 
 
+@contextlib.contextmanager
+def opened(recon):
+    """A viewer of ``recon`` on a free port at :data:`FRAME`, closed afterwards."""
+    v = Viewer(ViewerScene(recon), "127.0.0.1", 0, frame=FRAME, verbose=False)
+    try:
+        yield v
+    finally:
+        v.close()
+
+
 @pytest.fixture()
 def viewer(recon):
-    v = Viewer(ViewerScene(recon), "127.0.0.1", 0, frame=FRAME, verbose=False)
-    yield v
-    v.close()
+    with opened(recon) as v:
+        yield v
 
 
 def blocks(image: np.ndarray, size: int) -> np.ndarray:
@@ -52,6 +62,16 @@ def blocks(image: np.ndarray, size: int) -> np.ndarray:
 def histogram(image: np.ndarray, bins: int = 16) -> np.ndarray:
     """(3, bins) per-channel histograms of an image in [0, 1], each summing to 1."""
     return np.stack([np.histogram(image[..., c], bins=bins, range=(0, 1))[0] / image[..., c].size for c in range(3)])
+
+
+def page_client(browser: HeadlessChromium, viewer: Viewer):
+    """Open ``viewer``'s page in ``browser``; the viser client of that page once it connects."""
+    browser.navigate(viewer.url)
+    deadline = time.monotonic() + 60
+    while not viewer.server.get_clients():
+        assert time.monotonic() < deadline, f"the page never connected: {browser.log_tail()}"
+        time.sleep(0.1)
+    return next(iter(viewer.server.get_clients().values()))
 
 
 def settled_screenshot(browser: HeadlessChromium, drawn: bool, timeout: float = 60.0) -> np.ndarray:
@@ -78,12 +98,7 @@ def test_browser_draws_the_scene_like_the_server(viewer, recon, tmp_path):
     viewer.gui_cameras.value = False
     W, H = 360, 240
     with HeadlessChromium(width=W, height=H) as browser:
-        browser.navigate(viewer.url)
-        deadline = time.monotonic() + 60
-        while not viewer.server.get_clients():
-            assert time.monotonic() < deadline, f"the page never connected: {browser.log_tail()}"
-            time.sleep(0.1)
-        client = next(iter(viewer.server.get_clients().values()))
+        client = page_client(browser, viewer)
         cam = recon.scene.cameras[0]
         viewer.look_through(client, cam.cam_to_world[FRAME], cam.intrinsics, cam.height)
         assert viewer.wait_idle()
@@ -453,3 +468,165 @@ def test_view_command_serves_the_page(tiny_run, plugins, tmp_path):
     thread.join(30)
     assert page is not None and "<html" in page.lower()
     assert result.get("code") == 0
+
+
+# ---------------------------------------------------------------------------- LiDAR
+def sweep_xyz(points: np.ndarray) -> np.ndarray:
+    return np.stack([points["x"], points["y"], points["z"]], axis=-1).astype(np.float64)
+
+
+@pytest.fixture(scope="module")
+def lidar_recon(tiny_lidar_run, plugins):
+    torch.set_num_threads(1)
+    return Reconstruction.from_run(tiny_lidar_run, plugins)
+
+
+@pytest.fixture()
+def lidar_viewer(lidar_recon):
+    with opened(lidar_recon) as v:
+        yield v
+
+
+def test_ramp_colours_are_the_anchors_linearly_interpolated():
+    from omnire_viewer.lidar import RAMP, ramp_colours
+
+    got = ramp_colours(np.array([0.0, 0.25, 0.5, 0.75, 1.0, 0.125, -3.0, 7.0, np.nan]))
+    np.testing.assert_array_equal(got[:5], RAMP.astype(np.uint8))
+    np.testing.assert_array_equal(got[5], ((RAMP[0] + RAMP[1]) / 2 + 0.5).astype(np.uint8))  # halfway
+    np.testing.assert_array_equal(got[6], RAMP[0].astype(np.uint8))  # clipped below
+    np.testing.assert_array_equal(got[7], RAMP[-1].astype(np.uint8))  # and above
+    np.testing.assert_array_equal(got[8], RAMP[0].astype(np.uint8))  # NaN: as 0
+
+
+def test_the_rendered_sweep_follows_time_toggles_and_edits(lidar_viewer, lidar_recon):
+    """Ticked, the viewer draws the sweep omnire sim renders of the same simulated scene at
+    the slider's moment (``sim_sweep``), coloured by intensity or range; the time slider and
+    the actor edits render it again (the node toggles only hide splats); unticked, it is
+    hidden."""
+    from omnire_sim.cli import sim_sweep
+    from omnire_viewer.lidar import ramp_colours
+
+    v = lidar_viewer
+    assert v.scene.renders_lidar and not v.gui_lidar.disabled and v._lidar_handle is None  # off by default
+    v.gui_lidar.value = True
+    v._dirty.set()
+    assert v.wait_idle()
+    expected = sim_sweep(Simulation(lidar_recon, Scenario()), lidar_recon.time(FRAME))
+    handle = v._lidar_handle
+    assert len(expected) > 1000 and handle.visible
+    np.testing.assert_allclose(handle.points, sweep_xyz(expected), atol=1e-4)
+    np.testing.assert_array_equal(handle.colors, ramp_colours(expected["intensity"]))
+    assert f"{len(expected):,} points at frame {FRAME:.1f}" in v.gui_lidar_note.content
+
+    # By range: the same points, darker when nearer the sensor (viridis' green rises monotonically).
+    v.gui_lidar_colour.value = "range"
+    v._dirty.set()
+    assert v.wait_idle()
+    handle = v._lidar_handle
+    np.testing.assert_allclose(handle.points, sweep_xyz(expected), atol=1e-4)
+    sensor = sensor_path(lidar_recon.scene).at(lidar_recon.time(FRAME).seconds)[0, :3, 3]
+    distance = np.linalg.norm(sweep_xyz(expected) - sensor, axis=1)
+    green = handle.colors[np.argsort(distance), 1].astype(int)
+    # ranges measured from the sensor of each ray's time (it moves during the sweep): near-monotonic here
+    assert np.mean(np.diff(green) >= 0) > 0.95 and green[0] < 60 and green[-1] > 200
+    assert "range 0 (dark) to" in v.gui_lidar_note.content
+
+    # Another moment: another sweep (the sensor and the actors moved).
+    v.gui_frame.value = float(FRAME + 3)
+    v._dirty.set()
+    assert v.wait_idle()
+    later = sim_sweep(Simulation(lidar_recon, Scenario()), lidar_recon.time(FRAME + 3))
+    np.testing.assert_allclose(v._lidar_handle.points, sweep_xyz(later), atol=1e-4)
+    assert len(later) != len(expected) or np.abs(sweep_xyz(later) - sweep_xyz(expected)).max() > 0.1
+
+    # The node toggles hide splats, not returns: the same sweep with the background's splats off.
+    v.gui_nodes["background"].value = False
+    v._dirty.set()
+    assert v.wait_idle()
+    np.testing.assert_allclose(v._lidar_handle.points, sweep_xyz(later), atol=1e-4)
+    v.gui_nodes["background"].value = True
+
+    # An actor hidden through the panel: the sweep of the simulation with that removal.
+    tid = next(t for t, info in v.scene.actors.items() if info.node == "rigid")
+    v.edit_actor(tid, ActorEdit(hidden=True))
+    assert v.wait_idle()
+    scenario = v.scene.edits.scenario(v.scene.base)
+    removed = sim_sweep(Simulation(lidar_recon, scenario), lidar_recon.time(FRAME + 3))
+    np.testing.assert_allclose(v._lidar_handle.points, sweep_xyz(removed), atol=1e-4)
+    assert len(removed) != len(later) or np.abs(sweep_xyz(removed) - sweep_xyz(later)).max() > 0.1
+
+    v.gui_lidar.value = False
+    v._dirty.set()
+    assert v.wait_idle()
+    assert not v._lidar_handle.visible
+
+
+def test_a_run_without_lidar_offers_no_sweep(viewer):
+    """The tiny run learned no LiDAR: the box is disabled and says why; ticked anyway (a
+    client that ignores the disabled flag), it is refused and nothing is drawn."""
+    assert not viewer.scene.renders_lidar and viewer.gui_lidar.disabled
+    assert "--method.lidar.enabled" in viewer.gui_lidar_note.content
+    viewer.gui_lidar.value = True
+    viewer._lidar_toggled(SimpleNamespace(client=None))
+    assert viewer.wait_idle()
+    assert viewer.gui_lidar.value is False and viewer._lidar_handle is None
+    assert viewer.refusals[-1] == "Rendered sweep: this run learned no LiDAR"
+
+
+@pytest.mark.skipif(find_chromium() is None, reason="headless browser test: no chromium on PATH "
+                    "(Debian: apt-get install chromium; .ci/run installs it)")
+def test_browser_draws_the_sweep(lidar_viewer, lidar_recon, tmp_path):
+    """From above, with every node, box and camera switched off, the page shows the sweep
+    alone: coloured points where they project, blank where none does; coloured by range,
+    other colours on the same places; unticked, blank."""
+    import imageio.v3 as iio
+
+    v = lidar_viewer
+    for box in (*v.gui_nodes.values(), v.gui_boxes, v.gui_cameras):
+        box.value = False
+    v.gui_lidar.value = True
+    v._dirty.set()
+    assert v.wait_idle()
+    points = v._lidar_handle.points.astype(np.float64)
+    sensor = sensor_path(lidar_recon.scene).at(lidar_recon.time(FRAME).seconds)[0]
+    W, H = 360, 240
+    # a camera 40 m above the sensor looking straight down, image up = the sensor's forward
+    c2w = np.eye(4)
+    forward = sensor[:3, 0] / np.linalg.norm(sensor[:3, 0])
+    c2w[:3, 2] = (0.0, 0.0, -1.0)
+    c2w[:3, 1] = -forward  # OpenCV y points down the image
+    c2w[:3, 0] = np.cross(c2w[:3, 1], c2w[:3, 2])
+    c2w[:3, 3] = sensor[:3, 3] + (0.0, 0.0, 40.0)
+    f = 0.5 * H / math.tan(0.5 * math.radians(60.0))
+    K = np.array([[f, 0.0, W / 2], [0.0, f, H / 2], [0.0, 0.0, 1.0]])
+    with HeadlessChromium(width=W, height=H) as browser:
+        client = page_client(browser, v)
+        v.look_through(client, c2w, K, H)
+        assert browser.evaluate(SHOW_ONLY_CANVAS) == [W, H]
+        shot = settled_screenshot(browser, drawn=True)
+        iio.imwrite(tmp_path / "lidar_browser.png", (shot * 255).astype(np.uint8))
+        # Where the points project (12x12 blocks holding at least 3 of them) against blocks with none.
+        w2c = np.linalg.inv(c2w)
+        p = points @ w2c[:3, :3].T + w2c[:3, 3]
+        uv = (p @ K.T)[:, :2] / p[:, 2:3]
+        inside = (p[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        counts = np.zeros((H // 12, W // 12))
+        np.add.at(counts, ((uv[inside, 1] // 12).astype(int), (uv[inside, 0] // 12).astype(int)), 1)
+        background = np.median(shot.reshape(-1, 3), axis=0)
+        change = np.abs(blocks(shot, 12) - background).sum(axis=-1)
+        print(f"blocks with points: {(counts >= 3).sum()}, mean change there {change[counts >= 3].mean():.3f}, "
+              f"without any point {change[counts == 0].mean():.3f}")
+        assert (counts >= 3).sum() > 20
+        assert change[counts >= 3].mean() > 5 * max(change[counts == 0].mean(), 0.01)
+        # coloured by range instead: the same points, other colours
+        v.gui_lidar_colour.value = "range"
+        v._dirty.set()
+        assert v.wait_idle()
+        by_range = settled_screenshot(browser, drawn=True)
+        iio.imwrite(tmp_path / "lidar_browser_range.png", (by_range * 255).astype(np.uint8))
+        assert np.abs(blocks(by_range, 12) - blocks(shot, 12))[counts >= 3].mean() > 0.02
+        v.gui_lidar.value = False
+        v._dirty.set()
+        assert v.wait_idle()
+        empty = settled_screenshot(browser, drawn=False)
+        assert empty.std() < 0.02 and np.abs(empty - shot).mean() > 0.01
