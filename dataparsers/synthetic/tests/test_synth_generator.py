@@ -217,6 +217,19 @@ def test_synth_command_and_dataparser(tmp_path):
     assert not scene.human_poses
 
 
+def test_train_command_line_reads_the_generator_options(tmp_path):
+    """`omnire train <method> synthetic` parses (the reader's and the generator's --fps were
+    one flag twice) and the scene's frame rate is the generator's."""
+    from omnire.runconfig import parse_train_args
+
+    plugins = load_plugins()
+    config = parse_train_args(["3dgs", "synthetic", "--data", str(tmp_path / "s"), "--preset", "empty",
+                               "--frames", "3", "--width", "32", "--height", "24", "--fps", "5"], plugins)
+    assert config.dataparser.generator.fps == 5.0 and config.dataparser.generator.frames == 3
+    scene = config.dataparser.setup().parse()
+    assert np.allclose(np.diff(scene.frame_timestamps), 0.2)
+
+
 def test_output_folder_rules(tmp_path):
     other = tmp_path / "other"
     other.mkdir()
