@@ -243,23 +243,26 @@ def may_reach(means: torch.Tensor, log_scales: torch.Tensor, rays: LidarRays, ep
     if R == 0:
         return torch.zeros(len(means), dtype=torch.bool, device=means.device)
     with torch.no_grad():
-        pose = rays.sensor_to_world.detach().to(torch.float64)
-        m = (means.detach().to(torch.float64) - pose[:3, 3]) @ pose[:3, :3]  # (N, 3) sensor frame
-        x, y, z = m.unbind(-1)
-        rho = torch.sqrt(x * x + y * y)
-        dist = torch.sqrt(rho * rho + z * z)
-        s = torch.exp(log_scales.detach().to(torch.float64).max(-1).values) * (180.0 / math.pi)
-        k = math.sqrt(2.0 * math.log(1.0 / ALPHA_THRESHOLD))
+        means = means.detach()
+        pose = rays.sensor_to_world.detach().to(means.dtype)
+        x, y, z = ((means - pose[:3, 3]) @ pose[:3, :3]).unbind(-1)  # sensor frame
+        rho2 = x * x + y * y
+        # squared half-widths over (180/pi)^2: k^2 (s^2 / d^2 + eps'), s the largest scale
+        k2 = (REACH_MARGIN[0] * EXTENT_MARGIN[0]) ** 2 * 2.0 * math.log(1.0 / ALPHA_THRESHOLD)
+        s2 = torch.exp(2.0 * log_scales.detach().max(-1).values)
+        eps = eps_deg2 * (math.pi / 180.0) ** 2
+        pad = EXTENT_MARGIN[1] + REACH_MARGIN[1]
 
-        def half_width(d: torch.Tensor) -> torch.Tensor:
-            w = REACH_MARGIN[0] * EXTENT_MARGIN[0] * k * torch.sqrt((s / d) ** 2 + eps_deg2)
-            return torch.nan_to_num(w + EXTENT_MARGIN[1] + REACH_MARGIN[1], nan=math.inf)
+        def half_width(d2: torch.Tensor) -> torch.Tensor:
+            w = torch.rad2deg(torch.sqrt(k2 * (s2 / d2 + eps))) + pad
+            return torch.nan_to_num(w, nan=math.inf)
 
         start, length = ray_arc(rays.azimuth_deg)
         offset = torch.remainder(torch.rad2deg(torch.atan2(y, x)) - start, 360.0)  # from the arc's start
-        off_arc = torch.clamp(torch.minimum(offset - length, 360.0 - offset), min=0.0)
-        el = torch.rad2deg(torch.atan2(z, rho))
+        off_arc = torch.minimum(offset - length, 360.0 - offset)  # <= 0 on the arc
+        keep = off_arc <= half_width(rho2)
+        el = torch.rad2deg(torch.atan2(z, torch.sqrt(rho2)))
         lo = float(rays.elevation_deg.detach().min())
         hi = float(rays.elevation_deg.detach().max())
-        reach_el = half_width(dist)
-        return (off_arc <= half_width(rho)) & (el >= lo - reach_el) & (el <= hi + reach_el)
+        reach_el = half_width(rho2 + z * z)
+        return keep & (el >= lo - reach_el) & (el <= hi + reach_el)
