@@ -50,6 +50,11 @@ class LidarConfig:
     """Rays of the sweep rendered in such a step (a random subset; 0: every ray)."""
     range_weight: float = 0.1
     """Weight of the L1 range error on rays that returned."""
+    median_range_weight: float = 0.1
+    """Weight of the L1 error of the median range (the range of the Gaussian at which the
+    ray's transmittance falls to 0.5) on rays that returned: it moves the surface the ray
+    stops at onto the return, which the expected range alone leaves blurred between the
+    Gaussians along the ray."""
     intensity_weight: float = 1.0
     """Weight of the squared intensity error on rays that returned."""
     ray_drop_weight: float = 0.1
@@ -73,7 +78,7 @@ class LidarConfig:
                 raise ConfigError(f"--method.lidar.{name} {getattr(self, name)}: must be >= 1")
         if self.rays_per_step < 0:
             raise ConfigError(f"--method.lidar.rays-per-step {self.rays_per_step}: must be >= 0 (0: every ray)")
-        for name in ("range_weight", "intensity_weight", "ray_drop_weight", "lr"):
+        for name in ("range_weight", "median_range_weight", "intensity_weight", "ray_drop_weight", "lr"):
             value = getattr(self, name)
             if not (value >= 0 and math.isfinite(value)):
                 raise ConfigError(f"--method.lidar.{name.replace('_', '-')} {value}: must be a finite number >= 0")
