@@ -37,20 +37,26 @@ LIDAR_CHANNELS = ("intensity", "ray_drop")
 class LidarConfig:
     """LiDAR as a rendered sensor: learned per-Gaussian intensity and ray drop, LiDAR losses.
 
-    Loss weights default to SplatAD's (neurad-studio ``SplatADModelConfig``: depth 0.1 as an L1
-    on range, intensity 1.0 as an L2, ray drop 0.1 as a binary cross-entropy); the OmniRe
-    paper's code renders no LiDAR and has none."""
+    Intensity and ray-drop weights are SplatAD's (neurad-studio ``SplatADModelConfig``:
+    intensity 1.0 as an L2, ray drop 0.1 as a binary cross-entropy; its depth weight is 0.1 as
+    an L1); the range weights are 0.5 (expected and median range): on the PandaSet demo cut
+    with its complete sweeps, 40 steps from the same start with every step rendering LiDAR
+    left a held-out median range error of 0.14 m with 0.5 and 0.5 against 0.18 m with
+    SplatAD's 0.1 on the expected range alone (0.16 m with 0.1 and 0.1). The OmniRe paper's
+    code renders no LiDAR and has none."""
 
     enabled: bool = False
     """Learn LiDAR intensity and ray drop on every Gaussian and train on rendered sweeps
     (needs a rasterizer with the ``lidar`` capability and a scene with LiDAR)."""
     every: int = 4
     """A training step also renders a LiDAR sweep every this many steps."""
-    rays_per_step: int = 16384
-    """Rays of the sweep rendered in such a step (a random subset; 0: every ray)."""
-    range_weight: float = 0.1
+    rays_per_step: int = 32768
+    """Rays of the sweep rendered in such a step (a random subset; 0: every ray). A step's cost
+    is mostly per Gaussian (projection, binning, sorting), so more rays cost little more: on
+    the demo cut (316k Gaussians, 1 thread, loaded) 16k rays took 2.3 s, 65k 3.2 s, all 115k 4.0 s."""
+    range_weight: float = 0.5
     """Weight of the L1 range error on rays that returned."""
-    median_range_weight: float = 0.1
+    median_range_weight: float = 0.5
     """Weight of the L1 error of the median range (the range of the Gaussian at which the
     ray's transmittance falls to 0.5) on rays that returned: it moves the surface the ray
     stops at onto the return, which the expected range alone leaves blurred between the
