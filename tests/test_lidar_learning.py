@@ -182,9 +182,9 @@ def test_training_with_lidar_renders_an_unvisited_pose_close_to_the_truth(lidar_
 
 
 STEPS = 300
-RANGE_TOLERANCE = 0.10
-"""Metres. Measured (docs/lidar.md, "Training with LiDAR"): 0.61 m untrained, 0.061-0.067 m
-after 300 steps, 0.041 m after 500 (4,000-8,000 rays a step)."""
+RANGE_TOLERANCE = 0.07
+"""Metres. Measured: 0.61 m untrained, 0.046 m after 300 steps with the default weights
+(the median range 0.049 m); 0.068 m with the expected range alone at SplatAD's 0.1."""
 
 
 def test_sensor_path_without_sensor_poses_uses_world_axes(tiny_scene):
