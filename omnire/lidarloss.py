@@ -3,6 +3,9 @@
 
 - ``lidar_range``: mean |rendered expected range - measured range| over the rays that
   returned (metres);
+- ``lidar_median_range``: the same for the rendered median range (the range of the Gaussian
+  at which the ray's transmittance falls to 0.5; ``max_range`` where it never does, which
+  then takes no gradient);
 - ``lidar_intensity``: mean squared intensity error over the returned rays whose intensity
   was recorded;
 - ``lidar_ray_drop``: binary cross-entropy of the rendered ray-drop probability against
@@ -30,9 +33,13 @@ def lidar_loss_terms(render: LidarRender, sweep: SweepRays, config: LidarConfig)
     device = render.range.device
     returned = torch.as_tensor(sweep.returned, device=device)
     terms: dict[str, torch.Tensor] = {}
-    if config.range_weight and bool(returned.any()):
+    if bool(returned.any()):
         target = torch.as_tensor(sweep.range[sweep.returned], dtype=render.range.dtype, device=device)
-        terms["lidar_range"] = config.range_weight * (render.range[returned] - target).abs().mean()
+        if config.range_weight:
+            terms["lidar_range"] = config.range_weight * (render.range[returned] - target).abs().mean()
+        if config.median_range_weight:
+            terms["lidar_median_range"] = (config.median_range_weight
+                                           * (render.median_range[returned] - target).abs().mean())
     measured = sweep.returned & np.isfinite(sweep.intensity)
     if config.intensity_weight and measured.any():
         rows = torch.as_tensor(np.flatnonzero(measured), device=device)

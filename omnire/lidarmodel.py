@@ -37,19 +37,31 @@ LIDAR_CHANNELS = ("intensity", "ray_drop")
 class LidarConfig:
     """LiDAR as a rendered sensor: learned per-Gaussian intensity and ray drop, LiDAR losses.
 
-    Loss weights default to SplatAD's (neurad-studio ``SplatADModelConfig``: depth 0.1 as an L1
-    on range, intensity 1.0 as an L2, ray drop 0.1 as a binary cross-entropy); the OmniRe
-    paper's code renders no LiDAR and has none."""
+    Intensity and ray-drop weights are SplatAD's (neurad-studio ``SplatADModelConfig``:
+    intensity 1.0 as an L2, ray drop 0.1 as a binary cross-entropy; its depth weight is 0.1 as
+    an L1, kept here on the expected range); the median range's is 0.5. On the synthetic scene
+    of tests/lidar_scene.py (300 steps, a pose off the path) the expected range alone at 0.1
+    renders the expected range 6.8 cm off and the median 22 cm; adding the median at 0.5
+    brings both to 4.6-4.9 cm with the same ray-drop agreement (99.6%), whereas the expected
+    range at 0.5 thins the surfaces (alpha below 0.5 on 10% of the returning rays, ray-drop
+    agreement 90%). The OmniRe paper's code renders no LiDAR and has none."""
 
     enabled: bool = False
     """Learn LiDAR intensity and ray drop on every Gaussian and train on rendered sweeps
     (needs a rasterizer with the ``lidar`` capability and a scene with LiDAR)."""
     every: int = 4
     """A training step also renders a LiDAR sweep every this many steps."""
-    rays_per_step: int = 16384
-    """Rays of the sweep rendered in such a step (a random subset; 0: every ray)."""
+    rays_per_step: int = 32768
+    """Rays of the sweep rendered in such a step (a random subset; 0: every ray). A step's cost
+    is mostly per Gaussian (projection, binning, sorting), so more rays cost little more: on
+    the demo cut (316k Gaussians, 1 thread, loaded) 16k rays took 2.3 s, 65k 3.2 s, all 115k 4.0 s."""
     range_weight: float = 0.1
     """Weight of the L1 range error on rays that returned."""
+    median_range_weight: float = 0.5
+    """Weight of the L1 error of the median range (the range of the Gaussian at which the
+    ray's transmittance falls to 0.5) on rays that returned: it moves the surface the ray
+    stops at onto the return, which the expected range alone leaves blurred between the
+    Gaussians along the ray."""
     intensity_weight: float = 1.0
     """Weight of the squared intensity error on rays that returned."""
     ray_drop_weight: float = 0.1
@@ -73,7 +85,7 @@ class LidarConfig:
                 raise ConfigError(f"--method.lidar.{name} {getattr(self, name)}: must be >= 1")
         if self.rays_per_step < 0:
             raise ConfigError(f"--method.lidar.rays-per-step {self.rays_per_step}: must be >= 0 (0: every ray)")
-        for name in ("range_weight", "intensity_weight", "ray_drop_weight", "lr"):
+        for name in ("range_weight", "median_range_weight", "intensity_weight", "ray_drop_weight", "lr"):
             value = getattr(self, name)
             if not (value >= 0 and math.isfinite(value)):
                 raise ConfigError(f"--method.lidar.{name.replace('_', '-')} {value}: must be a finite number >= 0")

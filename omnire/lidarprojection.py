@@ -209,3 +209,60 @@ def project_lidar(splats: Splats, rays: LidarRays, eps_deg2: float) -> Spherical
         extent = torch.nan_to_num(extent, nan=360.0, posinf=360.0).clamp(max=360.0)  # an overflow covers all
         extent = torch.where(ok[:, None], extent, torch.zeros_like(extent))
     return SphericalSplats(azimuth, elevation, conics, opacities, quad, lin, torch.sqrt(rho2).detach(), extent, ok)
+
+
+REACH_MARGIN = (1.02, 0.01)
+""":func:`may_reach` widens its bound by 2% and 0.01 degrees over the projection's own
+extents (:data:`EXTENT_MARGIN`), so float32 rounding in a backend never keeps a pair it culls."""
+
+
+def ray_arc(azimuth_deg: torch.Tensor) -> tuple[float, float]:
+    """(R,) azimuths in degrees (R >= 1) -> (start, length): the shortest arc of azimuth,
+    counter-clockwise from ``start`` in [0, 360) over ``length`` degrees, holding every ray."""
+    az = torch.sort(torch.remainder(azimuth_deg.detach().to(torch.float64), 360.0)).values
+    gaps = torch.diff(az, append=az[:1] + 360.0)  # gap after each ray, the last one wrapping
+    widest = int(torch.argmax(gaps))
+    start = float(az[(widest + 1) % len(az)])
+    return start, 360.0 - float(gaps[widest])
+
+
+def may_reach(means: torch.Tensor, log_scales: torch.Tensor, rays: LidarRays, eps_deg2: float) -> torch.Tensor:
+    """(N,) bool: False for Gaussians whose alpha is below 1/255 on every ray of ``rays``
+    whatever their opacity and rotation, so that leaving them out renders the same sweep with
+    the same gradients (the others get none from it). ``means`` (N, 3) world, ``log_scales``
+    (N, 3) (scales before ``exp``).
+
+    The bound: the projected angular variance along azimuth is at most
+    (180/pi)^2 s_max^2 / rho^2 + eps_deg2 (the azimuth row of the Jacobian has norm
+    (180/pi) / rho, rho the horizontal distance; s_max the largest scale), along elevation
+    the same with the centre distance, and alpha >= 1/255 needs the angular offset within
+    sqrt(2 ln 255) standard deviations (opacity <= 1). A Gaussian is kept when that
+    half-width reaches the shortest arc of the rays' azimuths (:func:`ray_arc`) and the band
+    of their elevations."""
+    R = len(rays)
+    if R == 0:
+        return torch.zeros(len(means), dtype=torch.bool, device=means.device)
+    with torch.no_grad():
+        means = means.detach()
+        pose = rays.sensor_to_world.detach().to(means.dtype)
+        x, y, z = ((means - pose[:3, 3]) @ pose[:3, :3]).unbind(-1)  # sensor frame
+        rho2 = x * x + y * y
+        # squared half-widths over (180/pi)^2: k^2 (s^2 / d^2 + eps'), s the largest scale
+        k2 = (REACH_MARGIN[0] * EXTENT_MARGIN[0]) ** 2 * 2.0 * math.log(1.0 / ALPHA_THRESHOLD)
+        s2 = torch.exp(2.0 * log_scales.detach().max(-1).values)
+        eps = eps_deg2 * (math.pi / 180.0) ** 2
+        pad = EXTENT_MARGIN[1] + REACH_MARGIN[1]
+
+        def half_width(d2: torch.Tensor) -> torch.Tensor:
+            w = torch.rad2deg(torch.sqrt(k2 * (s2 / d2 + eps))) + pad
+            return torch.nan_to_num(w, nan=math.inf)
+
+        start, length = ray_arc(rays.azimuth_deg)
+        offset = torch.remainder(torch.rad2deg(torch.atan2(y, x)) - start, 360.0)  # from the arc's start
+        off_arc = torch.minimum(offset - length, 360.0 - offset)  # <= 0 on the arc
+        keep = off_arc <= half_width(rho2)
+        el = torch.rad2deg(torch.atan2(z, torch.sqrt(rho2)))
+        lo = float(rays.elevation_deg.detach().min())
+        hi = float(rays.elevation_deg.detach().max())
+        reach_el = half_width(rho2 + z * z)
+        return keep & (el >= lo - reach_el) & (el <= hi + reach_el)

@@ -18,7 +18,7 @@ from omnire.beams import points_in_sensor_frame, range_image, spherical
 from omnire.data.scene import BeamModel, SceneData, SceneDataError
 from omnire.errors import UserError
 from omnire.interpolation import extend_poses, interpolate_poses
-from omnire.rollingshutter import SweepSector, sweep_sectors
+from omnire.rollingshutter import SweepSector, sector_split, sweep_sectors
 
 
 @dataclasses.dataclass(frozen=True)
@@ -259,3 +259,25 @@ def sectors_of(sweep: SweepRays, path: SensorPath, sectors: int, device: torch.d
     return sweep_sectors(torch.as_tensor(sweep.azimuth_deg, dtype=dtype, device=device),
                          torch.as_tensor(sweep.elevation_deg, dtype=dtype, device=device), sweep.times,
                          path.times, path.poses, sweep.min_range, sweep.max_range, sectors)
+
+
+def aimed_from_sectors(sweep: SweepRays, path: SensorPath, sectors: int) -> SweepRays:
+    """A recorded ``sweep`` with each ray re-aimed from the pose :func:`sectors_of` casts it
+    from (the sensor at its sector's middle time) instead of the pose it was fired from: a
+    returned ray points at its recorded return and measures the distance to it from there;
+    a missing return keeps its world direction. Rendered with the same ``sectors``, a static
+    surface is then fitted where it was measured, whatever the sector's duration (the
+    sensor moves ~0.5 m during a sweep at 18 km/h, so the unaimed rays of 4 sectors start up
+    to 6 cm off their recorded origin); only what moves within a sector (actors) stays
+    approximate. A sweep without world origins (a pose no sensor visited) is returned as it is."""
+    if sweep.origins is None or not len(sweep):
+        return sweep
+    which, middles = sector_split(sweep.times, sectors)
+    pose = path.at(middles)[which]  # (R, 4, 4) the pose each ray is cast from
+    rotation, origin = pose[:, :3, :3], pose[:, :3, 3]
+    ok = sweep.returned
+    world = sweep.directions.copy()  # (R, 3) unit world directions; returned rays towards their returns
+    world[ok] = sweep.origins[ok] + sweep.directions[ok] * sweep.range[ok, None] - origin[ok]
+    rng, az, el = spherical(np.einsum("rji,rj->ri", rotation, world))  # in the casting pose's frame
+    return dataclasses.replace(sweep, azimuth_deg=az, elevation_deg=el, range=np.where(ok, rng, np.nan),
+                               origins=origin, directions=world / rng[:, None])

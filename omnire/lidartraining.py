@@ -16,7 +16,7 @@ import torch
 
 from omnire.lidarloss import lidar_loss_terms
 from omnire.lidarmodel import LidarConfig
-from omnire.lidarsweep import SweepRays, recorded_sweep, sensor_path
+from omnire.lidarsweep import SweepRays, aimed_from_sectors, recorded_sweep, sensor_path
 
 if TYPE_CHECKING:
     from omnire.runtime import Reconstruction
@@ -64,6 +64,6 @@ class LidarTraining:
         """The weighted LiDAR loss terms of one sampled sweep rendered at training ``step``."""
         if len(self.frames) == 0:
             return {}
-        sweep = self.sample(config.rays_per_step)
+        sweep = aimed_from_sectors(self.sample(config.rays_per_step), self.path, config.sectors)
         render = self.recon.render_sweep(sweep, self.path, config.sectors, step=step)
         return lidar_loss_terms(render, sweep, config)

@@ -21,6 +21,7 @@ from omnire.errors import UserError
 from omnire.exposure import ExposureCompensation
 from omnire.gaussians import Gaussians
 from omnire.lidarmodel import LidarRender, activate, decode, lidar_features_for
+from omnire.lidarprojection import may_reach
 from omnire.nodes.base import EnvironmentNode, Node, NodeContext, NodeOutput
 from omnire.rasterization import LidarSettings, Rasterizer, RasterSettings, Splats
 from omnire.strategy import NodeSlice
@@ -356,6 +357,7 @@ class SceneModel(nn.Module):
         if self.lidar_features is None and not geometry_only:
             raise UserError("this scene learned no LiDAR features: train it with --method.lidar.enabled on a "
                             "scene with LiDAR to render LiDAR")
+        settings = LidarSettings() if settings is None else settings
         columns: dict[str, list[torch.Tensor]] = {"means": [], "quats": [], "scales": [], "opacities": [], "f": []}
         for node, out in parts:
             if out is None or out.num_gaussians == 0:
@@ -367,9 +369,14 @@ class SceneModel(nn.Module):
                 features = node.lidar_features(out)
                 if features is None:
                     features = self.lidar_features.initial(len(g), g.means.device, g.means.dtype)
+            # only the Gaussians that can reach a ray: the same sweep and gradients at a
+            # fraction of the projection's cost when the rays span part of the sphere
+            keep = torch.nonzero(may_reach(g.means, g.scales, rays, settings.eps_deg2))[:, 0]
+            if len(keep) == len(g):
+                keep = None
             for key, value in (("means", g.means), ("quats", g.quats), ("scales", g.scales),
                                ("opacities", g.opacities), ("f", features)):
-                columns[key].append(value)
+                columns[key].append(value if keep is None else value[keep])
         R = len(rays.azimuth_deg)
         if not columns["means"]:
             zeros = torch.zeros(R, device=self.device)
@@ -377,7 +384,7 @@ class SceneModel(nn.Module):
         cat = {k: torch.cat(v) for k, v in columns.items()}
         splats = Splats(cat["means"], cat["quats"], torch.exp(cat["scales"]), torch.sigmoid(cat["opacities"]),
                         activate(cat["f"]))
-        out = self.rasterizer.rasterize_lidar(splats, rays, LidarSettings() if settings is None else settings)
+        out = self.rasterizer.rasterize_lidar(splats, rays, settings)
         if geometry_only:
             return LidarRender(out.range, out.median_range, torch.full_like(out.alpha, float("nan")),
                                (1.0 - out.alpha).clamp(0.0, 1.0), out.alpha, len(splats))

@@ -48,6 +48,17 @@ def spin_times(azimuth_deg: np.ndarray, start_time: float, duration: float, star
     return start_time + duration * (np.remainder(turn if counter_clockwise else -turn, 360.0) / 360.0)
 
 
+def sector_split(times: np.ndarray, sectors: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rays fired at ``times`` (R,) seconds (R >= 1) in ``sectors`` sectors of equal duration
+    between the first and the last time -> (sector of each ray (R,) int64, middle time of
+    each sector (sectors,) float64)."""
+    times = np.asarray(times, dtype=np.float64)
+    t0, t1 = float(times.min()), float(times.max())
+    span = max(t1 - t0, 1e-12)
+    which = np.minimum(((times - t0) / span * sectors).astype(np.int64), sectors - 1)
+    return which, t0 + (np.arange(sectors) + 0.5) * (span / sectors)
+
+
 def sweep_sectors(azimuth_deg: torch.Tensor, elevation_deg: torch.Tensor, times: np.ndarray, pose_times: np.ndarray,
                   sensor_to_world: np.ndarray, min_range: float, max_range: float, sectors: int) -> list[SweepSector]:
     """Split a sweep's rays (R,) (azimuths and elevations in degrees in the sensor frame at
@@ -67,10 +78,7 @@ def sweep_sectors(azimuth_deg: torch.Tensor, elevation_deg: torch.Tensor, times:
         raise RasterInputError(f"sectors: {sectors}, expected >= 1")
     if R == 0:
         return []
-    t0, t1 = float(times.min()), float(times.max())
-    span = max(t1 - t0, 1e-12)
-    which = np.minimum(((times - t0) / span * sectors).astype(np.int64), sectors - 1)  # (R,) sector of each ray
-    middles = t0 + (np.arange(sectors) + 0.5) * (span / sectors)
+    which, middles = sector_split(times, sectors)
     poses = interpolate_poses(pose_times, sensor_to_world, middles)  # (sectors, 4, 4)
     dtype = azimuth_deg.dtype
     out = []
