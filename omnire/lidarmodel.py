@@ -117,16 +117,8 @@ def lidar_features_for(config: LidarConfig, scene) -> Optional[LidarFeatures]:
     intensity = 0.5
     if lidar.intensity is not None:
         values = [lidar.intensity[int(f)] for f in scene.train_frames if lidar.intensity[int(f)] is not None]
-        values = np.concatenate(values) if values else np.zeros(0)
-        top = float(values.max()) if len(values) else 0.0
-        if top > 1.0 and config.intensity_weight > 0:
-            from omnire.errors import ConfigError
-
-            raise ConfigError(f"scene {scene.name!r}: LiDAR intensity reaches {top:g}, but --method.lidar.enabled "
-                              "learns intensity in [0, 1] (its reader keeps the file's scale, docs/lidar.md \"The "
-                              "other readers\"); pass --method.lidar.intensity-weight 0 to learn range and ray drop only")
-        if len(values) and top <= 1.0:  # else not learned: start mid-scale rather than outside the sigmoid's range
-            intensity = float(np.median(values))
+        if values:
+            intensity = float(np.median(np.concatenate(values)))
     return LidarFeatures(intensity, config.init_ray_drop, config.lr)
 
 

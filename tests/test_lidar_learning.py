@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from omnire.errors import ConfigError
-from omnire.lidarmodel import LIDAR_KEY, LidarConfig, lidar_features_for
+from omnire.lidarmodel import LIDAR_KEY, LidarConfig
 from omnire.lidarsweep import beam_model_sweep, fixed_path, recorded_sweep, sensor_path
 from omnire.method import MethodConfig
 from omnire.nodes.background import BackgroundConfig
@@ -193,16 +192,3 @@ def test_sensor_path_without_sensor_poses_uses_world_axes(tiny_scene):
     pose = path.at(float(tiny_scene.frame_timestamps[0]))[0]
     np.testing.assert_array_equal(pose[:3, :3], np.eye(3))
     np.testing.assert_array_equal(pose[:3, 3], tiny_scene.lidar.origins[0])
-
-
-def test_intensity_beyond_one_is_refused_unless_not_learned(tmp_path):
-    """A reader that keeps its file's 0-255 scale: learning intensity in [0, 1] is refused with
-    the flag to pass (an L2 loss against 0-255 targets would swamp every other term);
-    without the intensity term the features start mid-scale and stay finite."""
-    scene = make_lidar_scene(tmp_path)
-    scene.lidar = dataclasses.replace(scene.lidar, intensity=[None if v is None else v * 255.0
-                                                              for v in scene.lidar.intensity])
-    with pytest.raises(ConfigError, match=r"intensity reaches .*--method.lidar.intensity-weight 0"):
-        lidar_features_for(LidarConfig(enabled=True), scene)
-    features = lidar_features_for(LidarConfig(enabled=True, intensity_weight=0.0), scene)
-    assert features is not None and features.init_intensity == 0.5
