@@ -33,7 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from omnire.api import BYTE_INTENSITY, UserError, atomic_write_bytes, interpolate_poses, invert_se3, rot_z, rotmat_to_quat
+from omnire.api import (
+    BYTE_INTENSITY, UserError, atomic_write_bytes, interpolate_poses, invert_se3, rot_z, rotmat_to_quat,
+)
 from omnire_argoverse2 import log as av2
 
 T0_NS = 315_966_265_259_836_000
@@ -176,8 +178,8 @@ def write_scene(source: Path, output: Path) -> None:
         atomic_write_bytes(output / "sensors" / "lidar" / f"{int(ns)}.feather", _feather_bytes({
             "x": pa.array(p[:, 0], pa.float16()), "y": pa.array(p[:, 1], pa.float16()),
             "z": pa.array(p[:, 2], pa.float16()),
-            "intensity": pa.array(np.zeros(n) if unit is None else np.round(BYTE_INTENSITY.from_unit(unit[f])),
-                                  pa.uint8()),
+            "intensity": pa.array(np.zeros(n, np.uint8) if unit is None
+                                  else np.round(BYTE_INTENSITY.from_unit(unit[f])).astype(np.uint8), pa.uint8()),
             "laser_number": pa.array(np.zeros(n, np.uint8), pa.uint8()),
             "offset_ns": pa.array(np.zeros(n, np.int32), pa.int32()),
         }))

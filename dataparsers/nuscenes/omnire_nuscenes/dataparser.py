@@ -48,8 +48,8 @@ import numpy as np
 
 from omnire.api import (
     BYTE_INTENSITY, ActorTrack, BeamModel, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig,
-    MaxTrackGap, SceneData, first_pose_world, frame_range, image_size, is_stationary, loaded_camera, nearest_index, resample_track,
-    thin_points,
+    MaxTrackGap, SceneData, first_pose_world, frame_range, image_size, is_stationary, loaded_camera, nearest_index,
+    resample_track, thin_points,
 )
 from omnire_nuscenes.tables import (
     NuScenesDataError,

@@ -15,7 +15,10 @@ style's dataset (``omnire_processed.formats``): the pixel-centre convention of
 ``PIXEL_CENTRES`` (``cx_file = cx - 0.5`` for "integer" datasets; the three styles are all
 "half", i.e. omnire's, so ``cx_file = cx``) and the box axes of ``BOX_HEADING_AXIS`` (PandaSet
 style: local +y along the heading and box_size = (width, length, height); others: x along the
-heading, (length, width, height)). The ground truth is in omnire's conventions.
+heading, (length, width, height)) and the LiDAR intensity scale of its ``LIDAR_LAYOUTS``
+entry (PandaSet and nuScenes 0-255, Waymo's unbounded raw scale: the ray-traced intensity in
+[0, 1] through ``IntensityScale.from_unit``, so the processed reader reads it back). The
+ground truth is in omnire's conventions.
 """
 from __future__ import annotations
 
