@@ -35,6 +35,7 @@ from omnire.data.dataparser import (
     resample_track,
 )
 from omnire.data.images import ImageCache, ImageReadError, image_size, read_image
+from omnire.data.intensity import BYTE_INTENSITY, UNBOUNDED_INTENSITY, UNIT_INTENSITY, IntensityScale
 from omnire.data.scene import (
     CATEGORIES,
     ActorTrack,

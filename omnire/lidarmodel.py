@@ -26,6 +26,8 @@ from typing import Optional
 import numpy as np
 import torch
 
+from omnire.data.scene import SceneDataError
+
 LIDAR_KEY = "lidar"
 """Per-Gaussian parameter key of the LiDAR features (N, 2): intensity logit, ray-drop logit."""
 
@@ -110,16 +112,38 @@ class LidarFeatures:
 def lidar_features_for(config: LidarConfig, scene) -> Optional[LidarFeatures]:
     """The features the nodes of a method with ``config`` hold on ``scene``: None when LiDAR
     rendering is off or the scene has no LiDAR. Intensity starts at the median return
-    intensity of the training sweeps (0.5 when the dataset records none)."""
+    intensity of the training sweeps (0.5 when the dataset records none, or when it is not
+    learned and leaves [0, 1]).
+
+    Raises SceneDataError when intensity is learned (``intensity_weight`` > 0) and a sweep's
+    intensity leaves [0, 1], the range of the sigmoid that predicts it: a squared error
+    against targets on another scale (a file's 0-255) would swamp every other loss term."""
     lidar = getattr(scene, "lidar", None)
     if not config.enabled or lidar is None:
         return None
     intensity = 0.5
     if lidar.intensity is not None:
+        outside = _outside_unit(lidar.intensity)
+        if outside is not None and config.intensity_weight > 0:
+            frame, value = outside
+            raise SceneDataError(
+                f"scene {scene.name!r}: lidar.intensity[{frame}] holds {value:g}, expected values in [0, 1] (readers "
+                "map their files' scale, docs/lidar.md \"Intensity scales\"); --method.lidar.intensity-weight 0 "
+                "learns range and ray drop only")
         values = [lidar.intensity[int(f)] for f in scene.train_frames if lidar.intensity[int(f)] is not None]
-        if values:
+        if values and outside is None:
             intensity = float(np.median(np.concatenate(values)))
     return LidarFeatures(intensity, config.init_ray_drop, config.lr)
+
+
+def _outside_unit(intensity: list[Optional[np.ndarray]]) -> Optional[tuple[int, float]]:
+    """(frame, value) of the first intensity outside [0, 1] (NaN included), or None."""
+    for t, v in enumerate(intensity):
+        if v is not None and len(v):
+            bad = ~((v >= 0) & (v <= 1))
+            if bad.any():
+                return t, float(v[bad][0])
+    return None
 
 
 def activate(raw: torch.Tensor) -> torch.Tensor:

@@ -5,12 +5,14 @@ rendered at a pose off the recorded path close to the ray-traced truth (tests/li
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
 import torch
 
-from omnire.lidarmodel import LIDAR_KEY, LidarConfig
+from omnire.data.scene import SceneDataError
+from omnire.lidarmodel import LIDAR_KEY, LidarConfig, lidar_features_for
 from omnire.lidarsweep import beam_model_sweep, fixed_path, recorded_sweep, sensor_path
 from omnire.method import MethodConfig
 from omnire.nodes.background import BackgroundConfig
@@ -192,3 +194,49 @@ def test_sensor_path_without_sensor_poses_uses_world_axes(tiny_scene):
     pose = path.at(float(tiny_scene.frame_timestamps[0]))[0]
     np.testing.assert_array_equal(pose[:3, :3], np.eye(3))
     np.testing.assert_array_equal(pose[:3, 3], tiny_scene.lidar.origins[0])
+
+
+@pytest.fixture(scope="module")
+def processed_synthetic_scene(tmp_path_factory):
+    """A synthetic scene as the processed reader reads it from the files the generator writes
+    (PandaSet style: intensity 0-255 in the files), which the LiDAR test runs train on."""
+    from omnire_synthetic.generate import SynthOptions, generate
+
+    path = tmp_path_factory.mktemp("processed-synthetic") / "scene"
+    generate(path, "urban", SynthOptions(frames=4, width=48, height=32, num_cameras=1, write_depth=False))
+    config = load_plugins().dataparsers.get("processed").config_factory()
+    config.data, config.scale = path, 1.0
+    return config.setup().parse(), path
+
+
+def test_learning_from_processed_files_gets_intensity_in_unit_range(processed_synthetic_scene, tmp_path):
+    """The files hold 0-255; LiDAR learning sees [0, 1] (the reader divides by 255), so the
+    intensity term of a step is a squared error of values in [0, 1], below 1 (it was
+    ~1e3, swamping every other term, when the reader handed over the files' scale)."""
+    scene, path = processed_synthetic_scene
+    assert np.fromfile(path / "lidar" / "000.bin", dtype=np.float32).reshape(-1, 5)[:, 3].max() > 100
+    values = np.concatenate([v for v in scene.lidar.intensity if v is not None])
+    assert 0 <= values.min() and values.max() <= 1
+    features = lidar_features_for(LidarConfig(enabled=True), scene)
+    train = np.concatenate([scene.lidar.intensity[int(f)] for f in scene.train_frames])
+    assert features.init_intensity == pytest.approx(float(np.median(train))) and 0 < features.init_intensity < 1
+    t = trainer(scene, tmp_path, lidar=True, every=1, rays_per_step=2000)
+    s = StepState(t.train_views[0])
+    for stage in ("prepare", "nodes", "render", "lidar"):
+        getattr(t, f"stage_{stage}")(s)
+    assert 0 < float(s.lidar_terms["lidar_intensity"].detach()) < 1
+
+
+def test_intensity_outside_unit_range_is_refused_unless_not_learned(processed_synthetic_scene):
+    """Intensity on another scale (the files' 0-255, as the processed reader once handed it
+    over) is refused where learning starts, naming the scene, the field and the flag that
+    learns range and ray drop only; with that flag the features start mid-scale."""
+    scene, _ = processed_synthetic_scene
+    lidar = dataclasses.replace(scene.lidar, intensity=[None if v is None else v * 255.0 for v in scene.lidar.intensity])
+    byte_scaled = dataclasses.replace(scene, lidar=lidar)
+    first = next(t for t, v in enumerate(lidar.intensity) if v is not None and v.max() > 1)
+    with pytest.raises(SceneDataError, match=rf"^scene {re.escape(repr(scene.name))}: lidar\.intensity\[{first}\] holds "
+                                             r"[0-9.]+, expected values in \[0, 1\] .*--method\.lidar\.intensity-weight 0"):
+        lidar_features_for(LidarConfig(enabled=True), byte_scaled)
+    features = lidar_features_for(LidarConfig(enabled=True, intensity_weight=0.0), byte_scaled)
+    assert features.init_intensity == 0.5

@@ -150,8 +150,9 @@ class LidarSweeps:
         points: F entries, each (N_t, 3) float32 world xyz, or None where the frame has no
             LiDAR (a real gap: consumers must skip it).
         origins: (F, 3) sensor origin in the world per frame (NaN where missing).
-        intensity: optional F entries of (N_t,) float32 return strength, >= 0, divided by
-            the dataset's full scale where it has one (PandaSet 0-255 -> 0-1).
+        intensity: optional F entries of (N_t,) float32 return strength in [0, 1]: the
+            file's value mapped from its dataset's scale (:mod:`omnire.data.intensity`;
+            PandaSet 0-255 -> / 255). LiDAR learning refuses values outside [0, 1].
         times: optional F entries of (N_t,) float64 seconds on the log's clock
             (:attr:`SceneData.frame_timestamps`) at which each return was measured.
         beams: optional F entries of (N_t,) int16 beam index into

@@ -22,7 +22,7 @@ from typing import Type
 import numpy as np
 
 from omnire.api import (
-    ActorTrack, CameraSequence, Dataparser, LidarSweeps, LogDataparserConfig, STATIONARY_THRESHOLD,
+    BYTE_INTENSITY, ActorTrack, CameraSequence, Dataparser, LidarSweeps, LogDataparserConfig, STATIONARY_THRESHOLD,
     SceneData, extend_poses, first_pose_world, frame_range, image_size, is_stationary, loaded_camera,
     majority_label, resample_track, thin_points,
 )
@@ -182,10 +182,8 @@ def load_lidar(paths: list[Path], frame_ns: np.ndarray, ego_to_world: np.ndarray
         keep = thin_points(np.arange(len(sweep.xyz)), max_points, ts)
         xyz = sweep.xyz[keep]  # (N, 3) ego frame
         points.append((xyz @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
-        value = np.asarray(sweep.intensity, dtype=np.float64)[keep]
-        if len(value) and not (value.min() >= 0 and value.max() <= 255):
-            raise Av2LogError(f"{path}: column intensity must hold numbers in 0..255")
-        intensity.append((value / 255.0).astype(np.float32))
+        intensity.append(BYTE_INTENSITY.to_unit(np.asarray(sweep.intensity)[keep], f"{path}: column intensity",
+                                                Av2LogError))
         times.append((int(ts) + np.asarray(sweep.offset_ns, dtype=np.int64)[keep]) * 1e-9)
         lasers.append(np.asarray(sweep.laser_number)[keep])
     sensor_to_world = ego_to_world @ lidar_to_ego[None]  # (F, 4, 4), axes x forward, y left, z up

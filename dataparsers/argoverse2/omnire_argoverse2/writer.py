@@ -33,7 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from omnire.api import UserError, atomic_write_bytes, interpolate_poses, invert_se3, rot_z, rotmat_to_quat
+from omnire.api import (
+    BYTE_INTENSITY, UserError, atomic_write_bytes, interpolate_poses, invert_se3, rot_z, rotmat_to_quat,
+)
 from omnire_argoverse2 import log as av2
 
 T0_NS = 315_966_265_259_836_000
@@ -166,7 +168,7 @@ def write_scene(source: Path, output: Path) -> None:
     }))
 
     # Sweeps (ego frame, float16 as AV2) and the cuboids counted on them.
-    raw = _raw_intensities(source, parser.source, scene)
+    unit = scene.lidar.intensity  # in [0, 1]: the processed reader maps its files' scale
     written_pts = []
     for f, (ns, pts) in enumerate(zip(frame_ns, scene.lidar.points)):
         M = world_to_ego[f]
@@ -176,7 +178,8 @@ def write_scene(source: Path, output: Path) -> None:
         atomic_write_bytes(output / "sensors" / "lidar" / f"{int(ns)}.feather", _feather_bytes({
             "x": pa.array(p[:, 0], pa.float16()), "y": pa.array(p[:, 1], pa.float16()),
             "z": pa.array(p[:, 2], pa.float16()),
-            "intensity": pa.array(raw[f] if raw is not None else np.zeros(n, np.uint8), pa.uint8()),
+            "intensity": pa.array(np.zeros(n, np.uint8) if unit is None
+                                  else np.round(BYTE_INTENSITY.from_unit(unit[f])).astype(np.uint8), pa.uint8()),
             "laser_number": pa.array(np.zeros(n, np.uint8), pa.uint8()),
             "offset_ns": pa.array(np.zeros(n, np.int32), pa.int32()),
         }))
@@ -201,27 +204,6 @@ def write_scene(source: Path, output: Path) -> None:
         **_pose_columns(poses),
         "num_interior_pts": pa.array([r[5] for r in rows], pa.int64()),
     }))
-
-
-def _raw_intensities(source: Path, dataset: str, scene) -> list | None:
-    """Per-frame uint8 intensities of the processed LiDAR files, in the processed reader's
-    point order (its finite rows), or None when the layout has none."""
-    from omnire_processed.formats import LIDAR_LAYOUTS
-
-    layout = LIDAR_LAYOUTS.get(dataset)
-    if layout is None or layout.intensity is None:
-        return None
-    out = []
-    for t, pts in zip(scene.source_frames, scene.lidar.points):
-        data = np.fromfile(source / "lidar" / f"{int(t):03d}.bin", dtype=np.float32).reshape(-1, layout.columns)
-        keep = np.isfinite(data[:, layout.xyz:layout.xyz + 3]).all(1)
-        inten = data[keep, layout.intensity].astype(np.float64)
-        if len(inten) != len(pts):
-            return None
-        if len(inten) and inten.max() <= 1.0:
-            inten = inten * 255.0
-        out.append(np.clip(np.round(inten), 0, 255).astype(np.uint8))
-    return out
 
 
 def _jpeg_bytes(src: Path) -> bytes:

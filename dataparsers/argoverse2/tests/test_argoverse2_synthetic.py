@@ -99,6 +99,9 @@ def test_round_trip_against_the_processed_reader(synthetic_log):
         tol = np.sqrt(3) * 2.0 ** -11 * np.abs(ego_xyz).max(1) + 1e-4
         err = np.linalg.norm(pa_ - (pp @ M[:3, :3].T + M[:3, 3]), axis=1)
         assert (err <= tol).all(), float((err - tol).max())
+        # Intensity: both in [0, 1], AV2's uint8 within half a step of the processed value.
+        assert 0 <= A.lidar.intensity[f].min() and A.lidar.intensity[f].max() <= 1
+        np.testing.assert_allclose(A.lidar.intensity[f], P.lidar.intensity[f], atol=0.5 / 255 + 1e-6)
     np.testing.assert_allclose(A.lidar.origins, P.lidar.origins @ M[:3, :3].T + M[:3, 3], atol=1e-6)
 
     # Written cuboid point counts agree with the written sweeps (the check done on real logs).

@@ -48,8 +48,8 @@ from typing import Literal, Optional, Type
 import numpy as np
 
 from omnire.api import (
-    ActorTrack, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap, SceneData,
-    SceneDataError, axis_rotation, first_pose_world, frame_range, image_size, is_stationary, loaded_camera,
+    UNIT_INTENSITY, ActorTrack, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap,
+    SceneData, SceneDataError, axis_rotation, first_pose_world, frame_range, image_size, is_stationary, loaded_camera,
     majority_label, require_files, resample_track, thin_points,
 )
 
@@ -333,8 +333,7 @@ class KittiDataparser(Dataparser):
             rows = np.fromfile(path, dtype="<f4").reshape(-1, 4).astype(np.float64)  # (N, 4) Velodyne frame
             if not np.isfinite(rows).all():
                 raise KittiDataError(f"{path}: non-finite values")
-            if len(rows) and not (0 <= rows[:, 3].min() and rows[:, 3].max() <= 1):
-                raise KittiDataError(f"{path}: column 4 (reflectance) must hold numbers in 0..1")
+            rows[:, 3] = UNIT_INTENSITY.to_unit(rows[:, 3], f"{path}: column 4 (reflectance)", KittiDataError)
             rows = thin_points(rows, cfg.max_lidar_points_per_frame, f)  # keyed by the frame of the log
             M = velo_to_world[j]  # the Velodyne's axes are x forward, y left, z up already
             points.append((rows[:, :3] @ M[:3, :3].T + M[:3, 3]).astype(np.float32))

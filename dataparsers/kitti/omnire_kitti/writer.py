@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omnire.api import atomic_write_bytes, atomic_write_text, image_size, read_image, rigid, write_png
+from omnire.api import UNIT_INTENSITY, atomic_write_bytes, atomic_write_text, image_size, read_image, rigid, write_png
 from omnire.api import axis_rotation as rot_axis
 from omnire_kitti.dataparser import EARTH_RADIUS
 from omnire_processed.groundtruth import SyntheticSource
@@ -100,7 +100,7 @@ def write_kitti(source: Path, output: Path) -> dict:
         p = (src.points(f) - velo_to_gen[:3, 3]) @ velo_to_gen[:3, :3]  # (N, 3) Velodyne frame
         refl = src.intensity[f] if src.intensity[f] is not None else np.zeros(len(p))
         atomic_write_bytes(split / "velodyne" / SEQUENCE / f"{f:06d}.bin",
-                           np.column_stack([p, refl]).astype("<f4").tobytes())
+                           np.column_stack([p, UNIT_INTENSITY.from_unit(refl)]).astype("<f4").tobytes())
     atomic_write_text(split / "label_02" / f"{SEQUENCE}.txt", _labels(src, rect_to_ego, P[2], W, H))
     src.save_ground_truth(Path(output), mercator_from_gen,
                           "KITTI tracking layout (training/0000); file_from_generator maps to the Mercator frame of "

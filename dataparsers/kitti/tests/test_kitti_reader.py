@@ -51,7 +51,7 @@ def synth(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("kitti")
     proc = root / "processed"
-    # Waymo style: 14-column LiDAR with intensity in [0, 1], per-camera extrinsics.
+    # Waymo style: 14-column LiDAR with intensity on Waymo's unbounded scale, per-camera extrinsics.
     generate(proc, "urban", SynthOptions(frames=FRAMES, width=64, height=40, num_cameras=1, style="waymo",
                                          lidar_beams=16, lidar_azimuth_step_deg=0.8, write_depth=False))
     out = root / "kitti"
@@ -170,7 +170,7 @@ def test_lidar_round_trip(synth):
     origins = ref.lidar.origins @ synth.M[:3, :3].T + synth.M[:3, 3]
     assert np.allclose(s.lidar.origins, origins, atol=1e-6)
     for f in s.lidar.available_frames():  # reflectance is the intensity; the pose is the Velodyne's
-        assert s.lidar.intensity[f].dtype == np.float32 and 0 <= s.lidar.intensity[f].min()
+        assert s.lidar.intensity[f].dtype == np.float32 and 0 <= s.lidar.intensity[f].min() <= s.lidar.intensity[f].max() <= 1
         np.testing.assert_allclose(s.lidar.intensity[f], ref.lidar.intensity[f], atol=1e-6)
         np.testing.assert_allclose(s.lidar.sensor_to_world[f][:3, 3], s.lidar.origins[f])
         assert s.lidar.sensor_to_world[f][:3, 0] @ s.ego_poses[f][:3, 0] > 0.99  # Velodyne x = forward
@@ -287,6 +287,11 @@ def test_error_files(synth, tmp_path):
         parse(root)
     assert parse(root, end_frame=3).num_frames == 3
     velo = split / "velodyne" / "0000" / "000001.bin"
+    rows = np.fromfile(velo, dtype="<f4").reshape(-1, 4)
+    rows[5, 3] = 1.5
+    velo.write_bytes(rows.tobytes())
+    with pytest.raises(KittiDataError, match=r"000001\.bin: column 4 \(reflectance\) must hold numbers in 0\.\.1 \(found 1\.5"):
+        parse(root, end_frame=3)
     velo.write_bytes(velo.read_bytes()[:-4])
     with pytest.raises(KittiDataError, match=r"000001\.bin: \d+ bytes is not a whole number of 16-byte points"):
         parse(root, end_frame=3)

@@ -56,6 +56,7 @@ from typing import Optional, Type
 import numpy as np
 
 from omnire.api import (
+    BYTE_INTENSITY,
     ActorTrack,
     CameraSequence,
     ConfigError,
@@ -299,13 +300,10 @@ class NuPlanDataparser(Dataparser):
             if not np.isfinite(xyz).all():
                 raise NuPlanDataError(f"{path}: non-finite x, y, z values (table lidar_pc row {pc.token})")
             has_value = rec.dtype.names is not None and "intensity" in rec.dtype.names
-            value = np.asarray(rec["intensity"], dtype=np.float64) if has_value else np.full(len(xyz), np.nan)
-            if has_value and not (np.isfinite(value).all() and (value >= 0).all()):
-                raise NuPlanDataError(f"{path}: field intensity must hold finite numbers >= 0 "
-                                      f"(table lidar_pc row {pc.token})")
             keep = thin_points(np.arange(len(xyz)), cfg.max_lidar_points_per_frame, pc.integer("timestamp"))  # keyed by the sweep
             xyz = xyz[keep]
-            intensity.append(value[keep].astype(np.float32) if has_value else None)
+            intensity.append(BYTE_INTENSITY.to_unit(rec["intensity"], f"{path}: field intensity", NuPlanDataError)[keep]
+                             if has_value else None)
             lidar = lookup(lidars, pc, "lidar_token", "lidar")
             if lidar.token not in to_ego:
                 to_ego[lidar.token] = pose(lidar.pickled("translation", (3,)), lidar.pickled("rotation", (4,)),
@@ -317,8 +315,8 @@ class NuPlanDataparser(Dataparser):
             raise NuPlanFileMissing(f"{missing[0]}: none of the {len(frame_pcs)} LiDAR blobs of the loaded frames exists "
                                     "(table lidar_pc column filename; is --sensor-blobs right?); --no-load-lidar "
                                     "skips LiDAR")
-        # Intensity as the blobs hold it (merged clouds of five LiDARs with their own rings: no
-        # single beam model); all sweeps or none carry it.
+        # Intensity 0-255 / 255 (merged clouds of five LiDARs with their own rings: no single
+        # beam model); all sweeps or none carry it.
         carried = all(v is not None for v, p in zip(intensity, points) if p is not None)
         return LidarSweeps(points=points, origins=origins, intensity=intensity if carried else None)
 

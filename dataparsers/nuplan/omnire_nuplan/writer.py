@@ -43,7 +43,7 @@ import numpy as np
 from omnire.api import UserError, atomic_write_bytes, axis_rotation, interpolate_poses, interpolate_track, rotmat_to_quat
 from omnire_nuplan.dataparser import CAMERAS
 from omnire_nuplan.pointcloud import write_pcd
-from omnire.api import rigid
+from omnire.api import BYTE_INTENSITY, rigid
 from omnire_processed.groundtruth import SyntheticSource
 
 LOG = "2021.06.07.12.54.00_veh-99_00001_00100"
@@ -150,7 +150,7 @@ def write_nuplan(src: SyntheticSource, output: Path) -> dict:
         inten = src.intensity[f] if src.intensity[f] is not None else np.zeros(len(local))
         rec = np.zeros(len(local), dtype=[(n, "<f4") for n in ("x", "y", "z", "intensity", "ring", "lidar_info")])
         rec["x"], rec["y"], rec["z"] = local.T
-        rec["intensity"] = inten * 255.0
+        rec["intensity"] = BYTE_INTENSITY.from_unit(inten)
         atomic_write_bytes(blobs_path(output) / rel, write_pcd(rec))
 
     # Cameras: one image per frame at the frame time, each with its own ego_pose row.

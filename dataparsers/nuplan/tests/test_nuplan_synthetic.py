@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import sqlite3
 import subprocess
@@ -17,6 +18,8 @@ import pytest
 
 from omnire.api import first_pose_world, interpolate_poses
 from omnire_nuplan import CAMERAS, NuPlanConfig, category_of, parse_pcd
+from omnire_nuplan.database import NuPlanDataError
+from omnire_nuplan.pointcloud import write_pcd
 from omnire_nuplan.writer import FIRST_US, LOG, blobs_path, database_path, load_source, write_nuplan
 
 FRAMES = 6
@@ -107,11 +110,15 @@ def test_ground_truth_boxes(synth):
 
 
 def test_lidar_points(synth):
+    """Points and intensity (the blobs' 0-255 / 255) are the generator's."""
     s, E = synth.scene, synth.E
     for f in range(FRAMES):
         want = synth.src.points(f) @ E[:3, :3].T + E[:3, 3]
         got = s.lidar.points[f]
         assert got.shape == want.shape and np.abs(got - want).max() < 1e-4  # float32 blobs
+        value = s.lidar.intensity[f]
+        assert value.dtype == np.float32 and 0 <= value.min() <= value.max() <= 1
+        np.testing.assert_allclose(value, synth.src.intensity[f], atol=1e-6)
     origin = synth.E @ synth.gt["ego_to_world"][0] @ np.append(synth.src.lidar_to_ego[:3, 3], 1.0)
     assert np.abs(s.lidar.origins[0] - origin[:3]).max() < 1e-6
 
@@ -155,6 +162,21 @@ def test_max_track_gap_bridges_a_missing_box(synth, tmp_path):
     t = synth.scene.frame_timestamps
     expected = interpolate_poses(t[[0, 2]], track.poses[[0, 2]], t[1:2])[0]
     assert np.abs(bridged.poses[1] - expected).max() < 1e-9
+
+
+def test_lidar_intensity_outside_0_255_is_refused(synth, tmp_path):
+    root = tmp_path / "log"
+    shutil.copytree(synth.out, root)
+    conn = sqlite3.connect(database_path(root))
+    fn = conn.execute("SELECT filename FROM lidar_pc ORDER BY timestamp").fetchone()[0]
+    conn.close()
+    path = blobs_path(root) / fn
+    rec = parse_pcd(path.read_bytes(), path).copy()
+    rec["intensity"][3] = 256.0
+    path.write_bytes(write_pcd(rec))
+    with pytest.raises(NuPlanDataError, match=rf"{re.escape(fn)}: field intensity must hold numbers in 0..255 "
+                                              r"\(found 256, 1 of \d+ values; 0-255 scale\)"):
+        parse(root)
 
 
 def test_explicit_sensor_blobs(synth):

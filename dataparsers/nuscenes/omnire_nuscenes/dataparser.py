@@ -47,9 +47,9 @@ from typing import Optional, Type
 import numpy as np
 
 from omnire.api import (
-    ActorTrack, BeamModel, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig, MaxTrackGap, SceneData,
-    first_pose_world, frame_range, image_size, is_stationary, loaded_camera, nearest_index, resample_track,
-    thin_points,
+    BYTE_INTENSITY, ActorTrack, BeamModel, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig,
+    MaxTrackGap, SceneData, first_pose_world, frame_range, image_size, is_stationary, loaded_camera, nearest_index,
+    resample_track, thin_points,
 )
 from omnire_nuscenes.tables import (
     NuScenesDataError,
@@ -320,15 +320,13 @@ class NuScenesDataparser(Dataparser):
             if len(ring) and (ring.min() < 0 or ring.max() > HDL32E.num_beams - 1 or (ring != np.round(ring)).any()):
                 raise NuScenesDataError(f"{path}: column 5 (ring) must hold whole numbers 0..{HDL32E.num_beams - 1} "
                                         f"(the HDL-32E's lasers) (sample_data {sd['token']!r})")
-            if len(rows) and not (0 <= rows[:, 3].min() and rows[:, 3].max() <= 255):
-                raise NuScenesDataError(f"{path}: column 4 (intensity) must hold numbers in 0..255 "
-                                        f"(sample_data {sd['token']!r})")
+            rows[:, 3] = BYTE_INTENSITY.to_unit(rows[:, 3], f"{path}: column 4 (intensity)", NuScenesDataError)
             if cfg.lidar_min_distance > 0:
                 rows = rows[np.hypot(rows[:, 0], rows[:, 1]) >= cfg.lidar_min_distance]
             rows = thin_points(rows, cfg.max_lidar_points_per_frame, sd["timestamp"])  # keyed by the sweep
             M = world @ ego_frames[j] @ calib_of(sd)  # (4, 4) LiDAR -> world
             points.append((rows[:, :3] @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
-            intensity.append((rows[:, 3] / 255.0).astype(np.float32))
+            intensity.append(rows[:, 3].astype(np.float32))
             beams.append(rows[:, 4].astype(np.int16))
             sensor_to_world[j] = M @ FORWARD_IN_LIDAR
         if all(p is None for p in points):

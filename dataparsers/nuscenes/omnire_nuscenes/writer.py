@@ -37,7 +37,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from omnire.api import atomic_write_bytes, atomic_write_text, interpolate_poses, rigid, rotmat_to_quat
+from omnire.api import BYTE_INTENSITY, atomic_write_bytes, atomic_write_text, interpolate_poses, rigid, rotmat_to_quat
 from omnire.api import axis_rotation as rot_axis
 from omnire_nuscenes.dataparser import CAMERAS, LIDAR
 from omnire_processed.groundtruth import SyntheticSource
@@ -163,7 +163,7 @@ def write_nuscenes(source: Path, output: Path, camera_delays: Optional[Sequence[
         elev = np.arctan2(level[:, 2], np.hypot(level[:, 0], level[:, 1]))
         ring = np.clip(np.round((elev - elev_lo) / max(elev_hi - elev_lo, 1e-9) * (beams - 1)), 0, beams - 1)
         inten = src.intensity[f] if src.intensity[f] is not None else np.zeros(len(local))
-        rows = np.column_stack([local, inten * 255.0, ring]).astype("<f4")
+        rows = np.column_stack([local, BYTE_INTENSITY.from_unit(inten), ring]).astype("<f4")
         atomic_write_bytes(output / rel, rows.tobytes())
 
     # Cameras: one image per frame, JPEG bytes unchanged.

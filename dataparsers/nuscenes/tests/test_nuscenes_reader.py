@@ -177,13 +177,15 @@ def test_lidar_round_trip(synth):
 
 
 def test_lidar_intensity_ring_and_sensor_pose(synth):
-    """Intensity (0-255 / 255) and ring (beam of the HDL-32E model) ride along; the sensor
+    """Intensity (0-255 / 255: the processed copy's, which its reader maps to [0, 1] too) and
+    ring (beam of the HDL-32E model) ride along; the sensor
     pose is LIDAR_TOP's in x-forward axes (x = the ego's heading on the synthetic car)."""
     s, ref = synth.scene, synth.ref
     lidar = s.lidar
     assert lidar.beam_model.name == "Velodyne HDL-32E" and lidar.beam_model.num_beams == 32
     for f in range(FRAMES):
-        np.testing.assert_allclose(lidar.intensity[f], ref.lidar.intensity[f] / 255, atol=1e-6)  # processed: 0-255
+        assert lidar.intensity[f].dtype == np.float32 and 0 <= lidar.intensity[f].min() <= lidar.intensity[f].max() <= 1
+        np.testing.assert_allclose(lidar.intensity[f], ref.lidar.intensity[f], atol=1e-6)
         # The writer's ring: the elevation (z up) spread over 16 rings from -25 to 10 degrees.
         rel = lidar.points[f].astype(np.float64) - lidar.origins[f]
         el = np.degrees(np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1])))

@@ -40,6 +40,7 @@ import numpy as np
 import pandas as pd
 
 from omnire.api import (
+    BYTE_INTENSITY,
     ActorTrack,
     CameraSequence,
     Dataparser,
@@ -505,14 +506,12 @@ class PandasetDataparser(Dataparser):
             xyz = xyz @ world[:3, :3].T + world[:3, 3]
             if not np.isfinite(xyz).all():
                 raise SceneDataError(f"{path}: non-finite x, y, z values")
-            strength = table["i"].to_numpy(np.float64)[keep]
-            if not (np.isfinite(strength).all() and (strength >= 0).all() and (strength <= 255).all()):
-                raise SceneDataError(f"{path}: column i (intensity) must hold numbers in 0..255")
+            strength = BYTE_INTENSITY.to_unit(table["i"].to_numpy(np.float64)[keep], f"{path}: column i (intensity)")
             stamp = table["t"].to_numpy(np.float64)[keep]
             if not np.isfinite(stamp).all():
                 raise SceneDataError(f"{path}: column t (per-point time) holds NaN or inf; expected seconds")
             points.append(xyz.astype(np.float32))
-            intensity.append((strength / 255.0).astype(np.float32))
+            intensity.append(strength)
             times.append(stamp)
             if track is None:  # no calibrated pose: the pose of lidar/poses.json, no beams
                 sensor_to_world[j] = world @ lidar_poses[f] @ _EGO_IN_LIDAR

@@ -8,6 +8,8 @@ import dataclasses
 
 import numpy as np
 
+from omnire.api import BYTE_INTENSITY, UNBOUNDED_INTENSITY, UNIT_INTENSITY, IntensityScale
+
 SOURCES = ("waymo", "nuscenes", "nuplan", "argoverse", "pandaset", "kitti")
 
 # Waymo camera axes (x forward, y left, z up) -> OpenCV: cam_to_ego_opencv = cam_to_ego @ M.
@@ -71,23 +73,25 @@ BOX_HEADING_AXIS: dict[str, str] = {
 class LidarLayout:
     """float32 columns of one LiDAR row. ``origin`` is the column of the sensor origin x
     (None: the sensor sits at the pose origin); ``xyz`` the column of point x;
-    ``intensity`` its column (None if absent)."""
+    ``intensity`` its column (None if absent), on ``intensity_scale``: the source dataset's
+    own, which the reference's preprocessing copies unchanged."""
 
     columns: int
     xyz: int
     origin: int | None
     intensity: int | None
     description: str
+    intensity_scale: IntensityScale
 
 
 LIDAR_LAYOUTS: dict[str, LidarLayout] = {
     "waymo": LidarLayout(14, 3, 0, 11, "origin xyz, point xyz, flow xyz, flow class, ground, intensity, "
-                                        "elongation, laser id (ego frame)"),
-    "nuscenes": LidarLayout(4, 0, None, 3, "xyz, intensity (lidar frame, posed by lidar_pose/)"),
-    "argoverse": LidarLayout(4, 0, None, 3, "xyz, intensity (ego frame)"),
-    "kitti": LidarLayout(4, 0, None, 3, "xyz, intensity (ego frame)"),
-    "pandaset": LidarLayout(5, 0, None, 3, "xyz, intensity, sensor id (ego frame)"),
-    "nuplan": LidarLayout(6, 0, None, 3, "xyz, intensity, ring, lidar id (ego frame)"),
+                                        "elongation, laser id (ego frame)", UNBOUNDED_INTENSITY),
+    "nuscenes": LidarLayout(4, 0, None, 3, "xyz, intensity (lidar frame, posed by lidar_pose/)", BYTE_INTENSITY),
+    "argoverse": LidarLayout(4, 0, None, 3, "xyz, intensity (ego frame)", BYTE_INTENSITY),
+    "kitti": LidarLayout(4, 0, None, 3, "xyz, intensity (ego frame)", UNIT_INTENSITY),
+    "pandaset": LidarLayout(5, 0, None, 3, "xyz, intensity, sensor id (ego frame)", BYTE_INTENSITY),
+    "nuplan": LidarLayout(6, 0, None, 3, "xyz, intensity, ring, lidar id (ego frame)", BYTE_INTENSITY),
 }
 
 # Dataset class name -> actor category (omnire.data.scene.CATEGORIES). "vehicle" is the rigid

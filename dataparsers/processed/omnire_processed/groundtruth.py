@@ -16,7 +16,6 @@ from typing import Optional
 import numpy as np
 
 from omnire.api import SceneData, SceneDataError, atomic_write_bytes, atomic_write_text
-from omnire_processed.formats import LIDAR_LAYOUTS
 from omnire_processed.reader import ProcessedDataparser, ProcessedDataparserConfig
 
 
@@ -88,15 +87,7 @@ class SyntheticSource:
         offsets = np.stack([np.linalg.inv(ego[t]) @ np.append(o[t], 1.0) for t in range(F)])[:, :3]
         lidar_to_ego = np.eye(4)
         lidar_to_ego[:3, 3] = np.median(offsets, axis=0)
-        layout = LIDAR_LAYOUTS[reader.source]
-        intensity: list[Optional[np.ndarray]] = []
-        for t in range(F):
-            raw = np.fromfile(source / "lidar" / f"{t:03d}.bin", dtype=np.float32).reshape(-1, layout.columns)
-            if layout.intensity is None or len(raw) != len(scene.lidar.points[t]):
-                intensity.append(None)
-                continue
-            val = raw[:, layout.intensity].astype(np.float64)
-            intensity.append(np.clip(val / 255.0 if val.max(initial=0.0) > 1.0 else val, 0.0, 1.0))
+        intensity = scene.lidar.intensity or [None] * F  # in [0, 1]: the reader maps the files' scale
         return cls(
             source=source, scene=scene, gen_from_scene=gen_from_scene, times=gt["timestamps"].astype(np.float64),
             ego=ego, cam_to_ego=gt["cam_to_ego"], K=gt["intrinsics"], lidar_to_ego=lidar_to_ego,

@@ -19,7 +19,8 @@ Conversions to omnire's conventions (docs/conventions.md):
   is added to cx, cy. Then K is scaled to the loaded size (continuous coordinates scale by
   plain multiplication). Distortion is ignored (reported once if non-zero).
 - LiDAR: columns per dataset (``formats.LIDAR_LAYOUTS``), points posed by the frame's ego
-  (or LiDAR) pose.
+  (or LiDAR) pose; intensity mapped from the source dataset's scale, which the files keep,
+  to [0, 1] (``LidarLayout.intensity_scale``).
 - Boxes: ``obj_to_world`` is box-to-world at the box centre and ``box_size`` the extents
   along the box's local x, y, z. The reference writes local x along the heading with
   box_size = (length, width, height) for Waymo, nuScenes, Argoverse2, KITTI and NuPlan, but
@@ -365,17 +366,14 @@ class ProcessedDataparser(Dataparser):
             pts = xyz[keep] @ M[:3, :3].T + M[:3, 3]
             points.append(pts.astype(np.float32))
             if layout.intensity is not None:
-                value = data[keep, layout.intensity].astype(np.float32)
-                if not (np.isfinite(value).all() and (value >= 0).all()):
-                    raise ProcessedSceneError(f"{path}: column {layout.intensity + 1} (intensity) must hold finite "
-                                              f"numbers >= 0 ({source} rows: {layout.description})")
-                intensity.append(value)
+                intensity.append(layout.intensity_scale.to_unit(
+                    data[keep, layout.intensity], f"{path}: column {layout.intensity + 1} (intensity, {source} rows)",
+                    ProcessedSceneError))
             if layout.origin is not None and len(data):
                 o = data[:, layout.origin:layout.origin + 3].astype(np.float64).mean(0)
                 origins[i] = M[:3, :3] @ o + M[:3, 3]
             else:
                 origins[i] = M[:3, 3]
-        # Intensity on the file's own scale (each source's preprocessing decides it).
         return LidarSweeps(points, origins, intensity=intensity if layout.intensity is not None else None)
 
     # ------------------------------------------------------------------ tracks

@@ -262,13 +262,32 @@ def test_bad_input_lidar_size_not_multiple_of_row(scenes, tmp_path):
         read(bad)
 
 
-def test_bad_input_negative_intensity(scenes, tmp_path):
+def test_intensity_is_read_in_unit_range_from_every_style(scenes):
+    """The three styles hold one ray-traced sweep per frame on their datasets' scales
+    (PandaSet and nuScenes 0-255, Waymo unbounded): read, each is the generator's intensity
+    in [0, 1] (the materials' reflectivity 0.05-0.8 times 0.3-1), equal across styles."""
+    read_back = {style: read(path)[0].lidar.intensity for style, path in scenes.items()}
+    assert np.fromfile(scenes["pandaset"] / "lidar" / "000.bin", dtype=np.float32).reshape(-1, 5)[:, 3].max() > 100
+    compared = 0
+    for t, ref in enumerate(read_back["pandaset"]):
+        assert ref.dtype == np.float32 and 0.05 * 0.3 - 1e-6 <= ref.min() and ref.max() <= 0.8 + 1e-6
+        for style in ("nuscenes", "waymo"):
+            if read_back[style][t] is not None:
+                np.testing.assert_allclose(read_back[style][t], ref, atol=1e-6, err_msg=f"{style} frame {t}")
+                compared += 1
+    assert compared >= len(read_back["pandaset"])
+
+
+@pytest.mark.parametrize("value, expected", [(-1.0, "numbers in 0..255"), (255.5, "numbers in 0..255"),
+                                             (np.nan, "numbers in 0..255")])
+def test_bad_input_intensity_outside_the_sources_scale(scenes, tmp_path, value, expected):
     bad = _corrupt_copy(scenes, tmp_path)
     path = bad / "lidar" / "003.bin"
     rows = np.fromfile(path, dtype=np.float32).reshape(-1, 5)
-    rows[2, 3] = -1.0
+    rows[2, 3] = value
     path.write_bytes(rows.tobytes())
-    with pytest.raises(ProcessedSceneError, match=r"lidar/003\.bin: column 4 \(intensity\) must hold finite numbers >= 0"):
+    with pytest.raises(ProcessedSceneError, match=r"lidar/003\.bin: column 4 \(intensity, pandaset rows\) must hold "
+                                                  + expected + rf" \(found {value:g}, 1 of {len(rows)} values; 0-255"):
         read(bad)
 
 

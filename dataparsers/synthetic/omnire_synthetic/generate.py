@@ -15,7 +15,10 @@ style's dataset (``omnire_processed.formats``): the pixel-centre convention of
 ``PIXEL_CENTRES`` (``cx_file = cx - 0.5`` for "integer" datasets; the three styles are all
 "half", i.e. omnire's, so ``cx_file = cx``) and the box axes of ``BOX_HEADING_AXIS`` (PandaSet
 style: local +y along the heading and box_size = (width, length, height); others: x along the
-heading, (length, width, height)). The ground truth is in omnire's conventions.
+heading, (length, width, height)) and the LiDAR intensity scale of its ``LIDAR_LAYOUTS``
+entry (PandaSet and nuScenes 0-255, Waymo's unbounded raw scale: the ray-traced intensity in
+[0, 1] through ``IntensityScale.from_unit``, so the processed reader reads it back). The
+ground truth is in omnire's conventions.
 """
 from __future__ import annotations
 
@@ -31,7 +34,7 @@ import torch
 
 from omnire.api import rigid
 from omnire_processed.boxes import AXES, axis_fix, size_fix
-from omnire_processed.formats import BOX_HEADING_AXIS, PIXEL_CENTRES, WAYMO_TO_OPENCV
+from omnire_processed.formats import BOX_HEADING_AXIS, LIDAR_LAYOUTS, PIXEL_CENTRES, WAYMO_TO_OPENCV
 from omnire_synthetic import images
 from omnire.api import BeamModel
 from omnire_synthetic.meshes import Mesh, rot_z
@@ -373,8 +376,10 @@ def _write_matrix(path: Path, M: np.ndarray) -> None:
 def _write_lidar(out: Path, t: int, style: str, p_world: np.ndarray, intensity: np.ndarray, beams: np.ndarray,
                  ego_t: np.ndarray, sensor: np.ndarray, obj: np.ndarray, mat: np.ndarray,
                  actors: list[Actor], times: np.ndarray) -> None:
-    """One LiDAR file in the style's column layout (rows float32)."""
+    """One LiDAR file in the style's column layout (rows float32), ``intensity`` (N,) in
+    [0, 1] on the style's dataset's scale (``LidarLayout.intensity_scale``)."""
     N = len(p_world)
+    intensity = LIDAR_LAYOUTS[style].intensity_scale.from_unit(intensity)
     if style == "waymo":
         w2e = np.linalg.inv(ego_t)
         p_e = p_world @ w2e[:3, :3].T + w2e[:3, 3]
@@ -400,12 +405,12 @@ def _write_lidar(out: Path, t: int, style: str, p_world: np.ndarray, intensity: 
     elif style == "pandaset":
         s2w = np.linalg.inv(sensor)
         p_l = p_world @ s2w[:3, :3].T + s2w[:3, 3]
-        rows = np.column_stack([p_l, intensity * 255.0, np.zeros(N)])
+        rows = np.column_stack([p_l, intensity, np.zeros(N)])
     else:  # nuscenes: LiDAR frame x right, y forward, z up
         L = sensor @ NUSCENES_LIDAR_TO_EGO
         w2l = np.linalg.inv(L)
         p_l = p_world @ w2l[:3, :3].T + w2l[:3, 3]
-        rows = np.column_stack([p_l, intensity * 255.0])
+        rows = np.column_stack([p_l, intensity])
     rows.astype(np.float32).tofile(out / "lidar" / f"{t:03d}.bin")
 
 

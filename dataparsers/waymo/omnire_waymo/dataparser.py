@@ -25,12 +25,13 @@ Conventions (dataset.proto comments; the projection check of the tests on the re
   LiDARs are expressed in.
 - LiDAR: see :mod:`omnire_waymo.rangeimage`; the top LiDAR's points use their per-pixel
   vehicle poses, so each point is placed where the vehicle was when it was measured. Each
-  return keeps its intensity (range image channel 1, Waymo's raw scale) and, for the TOP
-  LiDAR, its beam: the range image row, whose elevation is the calibration's beam
-  inclination (``beam_model``: 360 / W degrees per column, 75 m range); returns of the other
-  LiDARs have beam -1. ``sensor_to_world`` is the TOP LiDAR's pose at the frame (its
-  extrinsic turned about its own z so that x points forward; elevations unchanged). The
-  records hold no per-point time (``times`` is None).
+  return keeps its intensity (range image channel 1: >= 0 with no documented top, mapped to
+  [0, 1] by tanh, ``omnire.api.UNBOUNDED_INTENSITY``) and, for the TOP LiDAR, its beam: the
+  range image row, whose elevation is the calibration's beam inclination (``beam_model``:
+  360 / W degrees per column, 75 m range); returns of the other LiDARs have beam -1.
+  ``sensor_to_world`` is the TOP LiDAR's pose at the frame (its extrinsic turned about its
+  own z so that x points forward; elevations unchanged). The records hold no per-point time
+  (``times`` is None).
 - Boxes: ``Label.Box`` centre and heading in the frame's vehicle frame, upright, x along
   the heading, size (length, width, height).
 """
@@ -48,9 +49,9 @@ from typing import Literal, Optional, Type
 import numpy as np
 
 from omnire.api import (
-    ActorTrack, BeamModel, CameraSequence, ConfigError, Dataparser, LidarSweeps, LogDataparserConfig,
-    MissingFileError, SceneData, SceneDataError, first_pose_world, frame_range, is_stationary, loaded_camera,
-    majority_label, resample_track, rigid, rot_z, thin_points, user_cache_dir,
+    UNBOUNDED_INTENSITY, ActorTrack, BeamModel, CameraSequence, ConfigError, Dataparser, LidarSweeps,
+    LogDataparserConfig, MissingFileError, SceneData, SceneDataError, first_pose_world, frame_range, is_stationary,
+    loaded_camera, majority_label, resample_track, rigid, rot_z, thin_points, user_cache_dir,
 )
 from omnire_waymo import rangeimage
 from omnire_waymo.tfrecord import RecordSpan, TFRecordReader
@@ -435,11 +436,9 @@ class WaymoDataparser(Dataparser):
                     pts, pixel = rangeimage.range_image_to_points(img[..., 0], incl, E, vehicle_pose, pixel_pose, self.world)
                 except rangeimage.RangeImageError as exc:
                     raise SceneDataError(f"{field}: {exc} (calibration context.laser_calibrations[{name}])") from None
-                value = img[pixel[:, 0], pixel[:, 1], 1]
-                if len(value) and value.min() < 0:
-                    raise SceneDataError(f"{field}: negative intensity (channel 1) at a pixel with a return")
                 parts.append(pts)
-                values.append(value)
+                values.append(UNBOUNDED_INTENSITY.to_unit(img[pixel[:, 0], pixel[:, 1], 1],
+                                                          f"{field}: channel 1 (intensity) at the pixels with a return"))
                 if name == "TOP":
                     self._top_beams(calib, img.shape[:2], incl, field)
                 beams.append(pixel[:, 0] if name == "TOP" else np.full(len(pts), -1))
@@ -454,7 +453,7 @@ class WaymoDataparser(Dataparser):
             return
         keep = thin_points(np.arange(sum(len(p) for p in parts)), cfg.max_lidar_points_per_frame, index)  # keyed by the record
         self.points.append(np.concatenate(parts)[keep].astype(np.float32))
-        self.intensity.append(np.concatenate(values)[keep].astype(np.float32))
+        self.intensity.append(np.concatenate(values)[keep])
         self.beams.append(np.concatenate(beams)[keep].astype(np.int16))
         self.sensor_poses.append(sensor)
 
