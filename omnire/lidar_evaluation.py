@@ -53,8 +53,9 @@ def rendered_sweep(render: LidarRender) -> RenderedSweep:
     transmittance falls to 0.5: the first surface it meets, as a LiDAR return is; the
     expected range blends the surfaces on both sides of a depth edge into points between
     them), the intensity and the ray-drop probability. On the PandaSet demo cut's held-out
-    sweeps (docs/lidar.md) the median range scores better than the expected one on every
-    figure (median range error 9.3 against 14.4 cm, Chamfer 0.41 against 0.55 m at step 929)."""
+    sweeps (docs/lidar.md) the median range scores better than the expected one (median
+    range error 9.3 against 14.4 cm, Chamfer 0.41 against 0.55 m, vehicle boxes 12 against
+    26 cm at step 929)."""
     drop = render.ray_drop.detach().cpu().double().clamp(0.0, 1.0).numpy()
     return RenderedSweep(render.median_range.detach().cpu().double().numpy(),
                          render.intensity.detach().cpu().double().numpy(), drop)
