@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import torch
 
 from omnire.data.scene import SceneData
 from omnire.lidar_baselines import baseline_metrics
-from omnire.lidar_metrics import RenderedSweep, boxes_at, lidar_metrics, mean_metrics
+from omnire.lidar_metrics import Box, RenderedSweep, boxes_at, lidar_metrics, mean_metrics
 from omnire.lidarmodel import LidarRender
-from omnire.lidarsweep import recorded_sweep, sensor_path
+from omnire.lidarsweep import SensorPath, SweepRays, aimed_from_sectors, recorded_sweep, sensor_path
 
 LIDAR_TABLE_COLUMNS: tuple[tuple[str, str, int], ...] = (
     ("median_abs_range_error", "median \\|range err\\| (m)", 4),
@@ -49,12 +49,32 @@ def lidar_test_frames(scene: SceneData) -> list[int]:
 
 
 def rendered_sweep(render: LidarRender) -> RenderedSweep:
-    """A rendered sweep's per-ray answer as plain arrays: the expected range (the one the
-    LiDAR loss trains and point clouds use, omnire/lidarpoints.py), the intensity (NaN
-    where the ray met nothing) and the ray-drop probability."""
+    """A rendered sweep's per-ray answer as plain arrays: the median range (where the ray's
+    transmittance falls to 0.5: the first surface it meets, as a LiDAR return is; the
+    expected range blends the surfaces on both sides of a depth edge into points between
+    them), the intensity and the ray-drop probability. On the PandaSet demo cut's held-out
+    sweeps (docs/lidar.md) the median range scores better than the expected one (median
+    range error 9.3 against 14.4 cm, Chamfer 0.41 against 0.55 m, vehicle boxes 12 against
+    26 cm at step 929)."""
     drop = render.ray_drop.detach().cpu().double().clamp(0.0, 1.0).numpy()
-    return RenderedSweep(render.range.detach().cpu().double().numpy(),
+    return RenderedSweep(render.median_range.detach().cpu().double().numpy(),
                          render.intensity.detach().cpu().double().numpy(), drop)
+
+
+def score_sweep(render_sweep: Callable[[SweepRays, SensorPath, int], LidarRender], rays: SweepRays,
+                path: SensorPath, sectors: int, boxes: Sequence[Box] = ()) -> dict:
+    """:func:`~omnire.lidar_metrics.lidar_metrics` of the recorded sweep ``rays`` rendered by
+    ``render_sweep(rays, path, sectors)`` (``Reconstruction.render_sweep``'s signature).
+
+    The rays are first re-aimed from the poses their time sectors are cast from
+    (:func:`~omnire.lidarsweep.aimed_from_sectors`, as training does): a sector's rays leave
+    the sensor's pose at its middle time, up to 6 cm from where they were fired with 4
+    sectors at 5 m/s, so the recorded ranges, measured from the firing poses, would
+    otherwise differ from a perfect render's by that much along the direction of travel.
+    The re-aimed returns are the recorded points (the same points for the Chamfer distance
+    and the boxes as the baselines score against)."""
+    aimed = aimed_from_sectors(rays, path, sectors)
+    return lidar_metrics(rendered_sweep(render_sweep(aimed, path, sectors)), aimed, boxes)
 
 
 @torch.no_grad()
@@ -62,8 +82,8 @@ def evaluate_lidar(recon, frames: Optional[Sequence[int]] = None, sectors: Optio
     """The mean :func:`~omnire.lidar_metrics.lidar_metrics` of ``recon``'s rendered sweeps
     over ``frames`` (default: the held-out frames with LiDAR), each rendered in ``sectors``
     time sectors (default: the method's ``lidar.sectors``) with the scene's boxes at the
-    frame; plus ``sweeps`` (how many) and ``seconds`` (render time). None when the run
-    learned no LiDAR or no frame has a sweep."""
+    frame (:func:`score_sweep`); plus ``sweeps`` (how many) and ``seconds`` (rendering and
+    scoring). None when the run learned no LiDAR or no frame has a sweep."""
     scene = recon.scene
     frames = lidar_test_frames(scene) if frames is None else [int(f) for f in frames]
     if not recon.renders_lidar or not frames:
@@ -75,9 +95,8 @@ def evaluate_lidar(recon, frames: Optional[Sequence[int]] = None, sectors: Optio
     for frame in frames:
         rays = recorded_sweep(scene, frame, grid_only=True)
         t0 = time.perf_counter()
-        render = recon.render_sweep(rays, path, sectors)
+        scores.append(score_sweep(recon.render_sweep, rays, path, sectors, boxes_at(scene, frame)))
         seconds += time.perf_counter() - t0
-        scores.append(lidar_metrics(rendered_sweep(render), rays, boxes_at(scene, frame)))
     out = mean_metrics(scores)
     out["sweeps"] = len(frames)
     out["seconds"] = seconds

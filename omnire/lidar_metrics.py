@@ -68,34 +68,38 @@ def lidar_metrics(rendered: RenderedSweep, recorded: SweepRays, boxes: Sequence[
                   drop_threshold: float = 0.5) -> dict:
     """Every figure of one sweep (keys below; NaN where a figure has nothing to count).
 
-    Range figures are over the recorded returns that the renderer gives a range for
-    (``range_coverage`` = their share of the recorded returns): ``median_abs_range_error``
-    and ``mean_abs_range_error`` (metres, |rendered - recorded|), ``mean_relative_range_error``
-    (|rendered - recorded| / recorded). ``intensity_rmse`` is over the recorded returns
-    with a rendered and a recorded intensity. Ray drop (only when the recorded rays are the
-    full beam grid): a ray is predicted dropped when its probability exceeds
-    ``drop_threshold``; ``drop_accuracy`` over all rays, ``drop_f1`` the F1 score of the
-    "dropped" class. ``chamfer`` (metres): the mean distance from each rendered point (rays
-    predicted to return, with a range) to the nearest recorded return plus the mean
-    distance from each recorded return to the nearest rendered point. For each category of
-    :data:`BOX_CATEGORIES`, ``<category>_median_abs_range_error``, ``..._mean_abs_range_error``
-    and ``<category>_returns`` over the recorded returns inside one of its ``boxes``.
+    A ray is predicted dropped when its probability exceeds ``drop_threshold``; the renderer
+    answers a ray when it predicts a return and gives a range (a baseline answers exactly
+    the rays it gives a range, a Gaussian render every ray it predicts to return), and every
+    figure but ray drop is over the rays it answers, so all renderers are scored alike.
+    Range figures are over the recorded returns it answers (``range_coverage`` = their
+    share of the recorded returns): ``median_abs_range_error`` and ``mean_abs_range_error``
+    (metres, |rendered - recorded|), ``mean_relative_range_error`` (|rendered - recorded| /
+    recorded). ``intensity_rmse`` is over those with a rendered and a recorded intensity.
+    Ray drop (only when the recorded rays are the full beam grid): ``drop_accuracy`` over
+    all rays, ``drop_f1`` the F1 score of the "dropped" class. ``chamfer`` (metres): the
+    mean distance from each rendered point (the answered rays) to the nearest recorded
+    return plus the mean distance from each recorded return to the nearest rendered point.
+    For each category of :data:`BOX_CATEGORIES`, ``<category>_median_abs_range_error``,
+    ``..._mean_abs_range_error`` over the answered recorded returns inside one of its
+    ``boxes`` and ``<category>_returns``, the recorded returns inside.
     """
     R = len(recorded)
     if len(rendered.range) != R:
         raise SceneDataError(f"rendered sweep has {len(rendered.range)} rays, the recorded sweep {R}")
     ret = recorded.returned
-    has_range = ret & np.isfinite(rendered.range)
+    predicted_drop = rendered.drop_probability > drop_threshold
+    answered = ~predicted_drop & np.isfinite(rendered.range)  # (R,) the rays rendered as a point
+    has_range = ret & answered
     err = np.abs(rendered.range - recorded.range)  # (R,), NaN off has_range
     out: dict = {"rays": R, "returns": int(ret.sum())}
     out["range_coverage"] = float(has_range.sum() / ret.sum()) if ret.any() else float("nan")
     out.update(_range_errors(err, has_range, ""))
     out["mean_relative_range_error"] = (float(np.mean(err[has_range] / recorded.range[has_range]))
                                         if has_range.any() else float("nan"))
-    both = ret & np.isfinite(rendered.intensity) & np.isfinite(recorded.intensity)
+    both = has_range & np.isfinite(rendered.intensity) & np.isfinite(recorded.intensity)
     out["intensity_rmse"] = (float(np.sqrt(np.mean((rendered.intensity[both] - recorded.intensity[both]) ** 2)))
                              if both.any() else float("nan"))
-    predicted_drop = rendered.drop_probability > drop_threshold
     if recorded.drops_known and R:
         dropped = ~ret
         out["drop_accuracy"] = float(np.mean(predicted_drop == dropped))
@@ -104,8 +108,7 @@ def lidar_metrics(rendered: RenderedSweep, recorded: SweepRays, boxes: Sequence[
         out["drop_f1"] = 2 * tp / (2 * tp + wrong) if 2 * tp + wrong else float("nan")
     else:
         out["drop_accuracy"] = out["drop_f1"] = float("nan")
-    shown = ~predicted_drop & np.isfinite(rendered.range)
-    pred_points = recorded.origins[shown] + recorded.directions[shown] * rendered.range[shown, None]
+    pred_points = recorded.origins[answered] + recorded.directions[answered] * rendered.range[answered, None]
     out["chamfer"] = chamfer_distance(pred_points, recorded.points())
     points = recorded.origins + recorded.directions * np.nan_to_num(recorded.range)[:, None]
     for category in BOX_CATEGORIES:
