@@ -35,8 +35,9 @@ class SkyConfig(NodeConfig):
 def equirect_coordinates(directions: torch.Tensor) -> torch.Tensor:
     """(..., 3) unit world directions (z up) -> (..., 2) grid_sample coordinates of the
     equirectangular map: x = azimuth / pi in [-1, 1], y = -elevation / (pi / 2) (top row = up)."""
-    # components as contiguous planes: torch's CPU atan2 takes its vectorised kernel only on
-    # contiguous operands (on the strided (..., 3) columns it is many times slower)
+    # components as contiguous planes (no copy for Camera.pixel_directions, which stores
+    # them so): torch's CPU atan2 takes its vectorised kernel only on contiguous operands
+    # (on the strided (..., 3) columns it is many times slower)
     x, y, z = directions.movedim(-1, 0).contiguous()
     azimuth = torch.atan2(y, x) / math.pi
     elevation = -torch.asin(z.clamp(-1, 1)) / (math.pi / 2)
