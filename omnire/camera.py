@@ -115,17 +115,27 @@ class Camera:
         w2c = None if self._world_to_cam is None else self._world_to_cam.to(device)
         return Camera(self.K.to(device), self.cam_to_world.to(device), self.width, self.height, self.name, w2c)
 
-    def pixel_directions(self) -> torch.Tensor:
-        """(H, W, 3) unit world directions of the rays through the pixel centres."""
+    def pixel_directions(self, pixels: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """(H, W, 3) unit world directions of the rays through the pixel centres; with
+        ``pixels`` ((P,) int64 row-major indices y * W + x), (P, 3) those pixels' directions,
+        the same values as the full image's at them. Stored as three planes (a view of a
+        (3, ...) tensor): ``movedim(-1, 0)`` gives contiguous components."""
         K = self.K
         R = self.cam_to_world[:3, :3].to(K.dtype)
-        x = (torch.arange(self.width, device=K.device, dtype=K.dtype) + 0.5 - K[0, 2]) / K[0, 0]  # (W,)
-        y = (torch.arange(self.height, device=K.device, dtype=K.dtype) + 0.5 - K[1, 2]) / K[1, 1]  # (H,)
+        if pixels is None:
+            x = (torch.arange(self.width, device=K.device, dtype=K.dtype) + 0.5 - K[0, 2]) / K[0, 0]
+            y = (torch.arange(self.height, device=K.device, dtype=K.dtype) + 0.5 - K[1, 2]) / K[1, 1]
+            x, y = x[None, :], y[:, None]  # (1, W), (H, 1)
+        else:
+            x = ((pixels % self.width).to(K.dtype) + 0.5 - K[0, 2]) / K[0, 0]  # (P,)
+            y = (torch.div(pixels, self.width, rounding_mode="floor").to(K.dtype) + 0.5 - K[1, 2]) / K[1, 1]
         # R [x, y, 1] = x R[:, 0] + y R[:, 1] + R[:, 2]: a row term plus a column term, and
-        # its length sqrt(x^2 + y^2 + 1) (R a rotation); broadcasts instead of an (H W) x 3 x 3
-        # matrix product and a norm over the last axis, both slow on the CPU
-        d = (y[:, None, None] * R[:, 1] + R[:, 2]) + x[None, :, None] * R[:, 0]
-        return d * torch.rsqrt(y[:, None, None] ** 2 + x[None, :, None] ** 2 + 1.0)
+        # its length sqrt(x^2 + y^2 + 1) (R a rotation); broadcast per component plane
+        # instead of an (H W) x 3 x 3 matrix product and a norm over the last axis, or
+        # elementwise passes whose innermost axis has length 3, all slow on the CPU
+        column = R.T.reshape(3, 3, *(1,) * x.dim())  # column[j][k]: R[k, j], broadcast over pixels
+        d = (y * column[1] + column[2]) + x * column[0]  # (3, H, W) or (3, P)
+        return (d * torch.rsqrt(y ** 2 + x ** 2 + 1.0)).movedim(0, -1)
 
 
 # How far outside the image a Gaussian can still paint a pixel. Rasterizers cut splats where

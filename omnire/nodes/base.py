@@ -351,8 +351,11 @@ class EnvironmentNode(Node):
     """Base of nodes that paint what no Gaussian covers (the sky), composited under the
     Gaussians as C = C_gs + (1 - O_gs) C_env. They hold no Gaussians."""
 
-    def render_environment(self, camera: Camera, t: SceneTime) -> torch.Tensor:
-        """(H, W, 3) colour of every pixel of ``camera`` at ``t``."""
+    def render_environment(self, camera: Camera, t: SceneTime, pixels: Optional[torch.Tensor] = None
+                           ) -> torch.Tensor:
+        """(H, W, 3) colour in [0, 1] of every pixel of ``camera`` at ``t``; with ``pixels``
+        ((P,) int64 row-major indices y * W + x), (P, 3) the colour of those pixels only (the
+        same values as the full image's at them)."""
         raise NotImplementedError
 
     def gaussians_at(self, t: SceneTime, camera: Optional[Camera] = None,

@@ -23,7 +23,9 @@ table): the mean of the stages the render measured (``RenderResult.timings``: no
 evaluation, the rasterizer's own stages, the rest of the rasterizer call, the environment
 (sky) and exposure), what the render spent outside them, and with ``--profile`` the
 conversion of the image to 8 bits and PNG (``omnire.api.write_png``, as ``omnire sim``
-writes frames).
+writes frames). ``sky_fraction``: the mean share of the pixels at which the environment
+(sky) was evaluated (``RenderResult.environment_pixels``; renders without autograd skip the
+pixels the Gaussians cover).
 """
 from __future__ import annotations
 
@@ -140,12 +142,13 @@ def measure(run: Path, plugins: Plugins, sizes: list[tuple[int, int]], views: in
             lenses = [[recon.camera(v).resized(w, h) for v in shot] for shot in shots]
             for shot, cams in list(zip(shots, lenses))[:warmup]:
                 recon.render_cameras(cams, recon.time(shot[0].frame))
-            times, stages, diff = [], [], 0.0
+            times, stages, diff, sky = [], [], 0.0, []
             for shot, cams in zip(shots, lenses):
                 t0 = time.perf_counter()
                 results = recon.render_cameras(cams, recon.time(shot[0].frame))
                 times.append((time.perf_counter() - t0) / len(shot))
                 for v, result in zip(shot, results):
+                    sky.append(result.environment_pixels / (w * h))
                     if not rig:  # a render's stages add up to its time only when it renders alone
                         stages.append(stage_times(result.timings, times[-1]))
                     rgb = result.rgb
@@ -169,6 +172,7 @@ def measure(run: Path, plugins: Plugins, sizes: list[tuple[int, int]], views: in
             out["sizes"][f"{w}x{h}"] = {"fps": images / sum(t * len(shot) for t, shot in zip(times, shots)),
                                        "median_ms": 1000 * float(np.median(times)),
                                        "max_abs_diff": diff if compare is not None else None,
+                                       "sky_fraction": float(np.mean(sky)),
                                        "stages_ms": {k: 1000 * float(np.mean([st.get(k, 0.0) for st in stages]))
                                                      for k in names}}
     out["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

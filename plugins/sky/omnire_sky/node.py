@@ -35,8 +35,12 @@ class SkyConfig(NodeConfig):
 def equirect_coordinates(directions: torch.Tensor) -> torch.Tensor:
     """(..., 3) unit world directions (z up) -> (..., 2) grid_sample coordinates of the
     equirectangular map: x = azimuth / pi in [-1, 1], y = -elevation / (pi / 2) (top row = up)."""
-    azimuth = torch.atan2(directions[..., 1], directions[..., 0]) / math.pi
-    elevation = -torch.asin(directions[..., 2].clamp(-1, 1)) / (math.pi / 2)
+    # components as contiguous planes (no copy for Camera.pixel_directions, which stores
+    # them so): torch's CPU atan2 takes its vectorised kernel only on contiguous operands
+    # (on the strided (..., 3) columns it is many times slower)
+    x, y, z = directions.movedim(-1, 0).contiguous()
+    azimuth = torch.atan2(y, x) / math.pi
+    elevation = -torch.asin(z.clamp(-1, 1)) / (math.pi / 2)
     return torch.stack([azimuth, elevation], -1)
 
 
@@ -47,11 +51,15 @@ class SkyNode(EnvironmentNode):
         self.env = torch.nn.Parameter(torch.full((1, 3, config.height, config.width), config.init_value,
                                                  device=context.device))
 
-    def render_environment(self, camera: Camera, t: SceneTime) -> torch.Tensor:
-        """(H, W, 3) sky colour for every pixel of ``camera``."""
-        grid = equirect_coordinates(camera.pixel_directions())[None]
+    def render_environment(self, camera: Camera, t: SceneTime, pixels: Optional[torch.Tensor] = None
+                           ) -> torch.Tensor:
+        """(H, W, 3) sky colour for every pixel of ``camera``, or (P, 3) for the (P,) row-major
+        pixel indices ``pixels`` (sampled as a 1 x P grid: the same texels, the same weights)."""
+        grid = equirect_coordinates(camera.pixel_directions(pixels))
+        grid = grid[None] if pixels is None else grid[None, None]
         out = F.grid_sample(self.env, grid, mode="bilinear", padding_mode="border", align_corners=False)
-        return out[0].permute(1, 2, 0).clamp(0, 1)
+        out = out[0].permute(1, 2, 0)
+        return (out if pixels is None else out[0]).clamp(0, 1)
 
     def environment_map(self) -> torch.Tensor:
         """(H, W, 3) the equirectangular map in [0, 1] (rows: elevation +90 to -90 degrees,
