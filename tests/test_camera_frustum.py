@@ -3,6 +3,7 @@ a densely sampled frustum for margins > 0."""
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from omnire.camera import Camera, in_frustum
 
@@ -61,7 +62,8 @@ def test_margin_keeps_every_point_near_the_frustum(margin):
     # Points far (> 2 margin) from every frustum sample are dropped.
     pts = torch.randn(4000, 3, dtype=torch.float64) * 12 + cam.cam_to_world[:3, 3]
     pts = pts[camera_coords(pts, cam)[:, 2] < 30]
-    dist = torch.cdist(pts, dense).min(dim=1).values
+    # exact nearest-sample distances by a k-d tree (a cdist to all 216,000 samples took 10-16 s)
+    dist = torch.from_numpy(cKDTree(dense.numpy()).query(pts.numpy())[0])
     far = dist > 2 * margin + 0.5  # 0.5: spacing of the dense samples
     assert int(far.sum()) > 100
     assert not bool(in_frustum(pts[far], cam, margin).any())

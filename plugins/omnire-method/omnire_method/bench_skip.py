@@ -20,6 +20,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import shlex
 import statistics
 import time
 from pathlib import Path
@@ -48,14 +49,25 @@ class SkipBenchArgs:
     """Untimed steps first."""
     extra_actors: tuple[int, ...] = (0, 100, 400)
     """Counts of added short-lived actors (absent from the timed frames)."""
+    method_args: str = ""
+    """Flags of every compared method, as ``omnire train`` takes them (e.g. ``--method.lidar.rays-per-step
+    2000`` or a smaller ``--method.nodes.background.max-lidar-points``)."""
     output: Path = Path("outputs/bench/skip.json")
     """JSON output."""
 
 
-def _trainer(plugins, method: str, dataparser: str, scene, seed: int = 0, lidar: bool = False):
+def _method_configs(plugins, args: SkipBenchArgs, methods: tuple[str, ...]) -> dict:
+    """Each method's configuration with ``--method-args`` applied (parsed as ``omnire train`` does)."""
+    from omnire.command_api import parse_train_args
+
+    return {m: parse_train_args([m, args.dataparser, "--data", str(args.data), *shlex.split(args.method_args)],
+                                plugins).method for m in methods}
+
+
+def _trainer(plugins, method_configs: dict, method: str, dataparser: str, scene, seed: int = 0, lidar: bool = False):
     from omnire.api import TrainConfig, Trainer, TrainerConfig
 
-    cfg = plugins.methods.get(method).config_factory()
+    cfg = copy.deepcopy(method_configs[method])
     cfg.lidar.enabled = lidar
     cfg.densify.refine_start = 10**9  # fixed Gaussian count: time the same work
     tc = TrainerConfig(max_steps=10**6, progress=False, seed=seed)
@@ -91,11 +103,13 @@ def main(argv: list[str], plugins) -> int:
     cfg.data, cfg.scale = args.data, args.scale
     scene = cfg.setup().load()
     out: dict = {"args": {k: str(v) for k, v in dataclasses.asdict(args).items()}}
+    method_configs = _method_configs(plugins, args, (args.baseline, "omnire"))
 
     no_humans = copy.copy(scene)
     no_humans.tracks = [t for t in scene.tracks if t.category not in ("human", "cyclist")]
     no_humans.human_poses = {}
-    trainers = [_trainer(plugins, method, args.dataparser, no_humans) for method in (args.baseline, "omnire")]
+    trainers = [_trainer(plugins, method_configs, method, args.dataparser, no_humans)
+                for method in (args.baseline, "omnire")]
     times = _time_steps(trainers, [tr.train_views for tr in trainers], args.warmup, args.steps)
     rows = [{"method": tr.config.method_name, "nodes": list(tr.recon.nodes), "ms_per_step": ms,
              "gaussians": tr.recon.num_gaussians()} for tr, ms in zip(trainers, times)]
@@ -119,7 +133,7 @@ def main(argv: list[str], plugins) -> int:
             t.present = np.zeros_like(t.present)
             t.present[:2] = True
             s.tracks.append(t)
-        trainers.append(_trainer(plugins, args.baseline, args.dataparser, s))
+        trainers.append(_trainer(plugins, method_configs, args.baseline, args.dataparser, s))
         views.append([v for v in trainers[-1].train_views if v.frame in late])
     times = _time_steps(trainers, views, args.warmup, args.steps)
     absent_rows = [{"extra_actors": k, "rigid_instances": len(tr.recon.assignment.get("rigid", [])),
@@ -135,13 +149,13 @@ def main(argv: list[str], plugins) -> int:
     configs = [("scene without LiDAR", no_lidar, False), ("scene without LiDAR", no_lidar, True),
                ("scene with LiDAR", scene, False)]
     try:
-        probe = _trainer(plugins, args.baseline, args.dataparser, scene, lidar=True)
+        probe = _trainer(plugins, method_configs, args.baseline, args.dataparser, scene, lidar=True)
         del probe
         configs.append(("scene with LiDAR", scene, True))
         lidar_note = None
     except UserError as exc:  # the rasterizer renders no LiDAR
         lidar_note = str(exc)
-    trainers = [_trainer(plugins, args.baseline, args.dataparser, s, lidar=on) for _, s, on in configs]
+    trainers = [_trainer(plugins, method_configs, args.baseline, args.dataparser, s, lidar=on) for _, s, on in configs]
     times = _time_steps(trainers, [tr.train_views for tr in trainers], args.warmup, args.steps)
     lidar_rows = [{"scene": name, "lidar": on, "parameters": sum(p.numel() for p in tr.model.parameters()),
                    "ms_per_step": ms, "gaussians": tr.recon.num_gaussians()}

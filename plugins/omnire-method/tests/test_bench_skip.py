@@ -1,4 +1,5 @@
-"""``omnire bench skip`` end to end (real subprocess, a few steps): without humans omnire
+"""``omnire bench skip`` end to end (real subprocess, a few steps, a few thousand background
+Gaussians and a 2000-ray LiDAR batch through ``--method-args``): without humans omnire
 builds exactly streetgs's nodes; absent actors add instances and Gaussians that the timed
 frames never render; LiDAR rendering on a scene without LiDAR adds no parameter."""
 import json
@@ -16,7 +17,9 @@ def test_bench_skip_builds_no_human_machinery_and_adds_absent_actors(tmp_path):
     out_json = tmp_path / "skip.json"
     out = subprocess.run(
         [sys.executable, "-m", "omnire.cli", "bench", "skip", "--data", str(DEMO_SCENE), "--scale", "0.25",
-         "--steps", "2", "--warmup", "1", "--extra-actors", "0", "20", "--output", str(out_json)],
+         "--steps", "2", "--warmup", "1", "--extra-actors", "0", "20", "--output", str(out_json),
+         "--method-args=--method.nodes.background.max-lidar-points 3000 --method.nodes.background.num-far-points 300 "
+         "--method.lidar.rays-per-step 2000"],
         capture_output=True, text=True, timeout=900, env=dict(os.environ, COLUMNS="200"))
     assert out.returncode == 0, out.stdout + out.stderr
     result = json.loads(out_json.read_text())
