@@ -16,9 +16,7 @@ from omnire.trainer import TrainConfig, Trainer, TrainerConfig
 from scene_helpers import assert_same_state
 
 
-def _trainer(scene, tmp_path, rasterizer, name, steps=34, resume=None):
-    # 34 steps: degrees 0-3 (fitted at 0, 10, 20, 30), growth at 8 and 16 (it stops at half the
-    # steps, 17), pruning at 8-32, checkpoints at 22 and 34
+def _trainer(scene, tmp_path, rasterizer, name, steps=44, resume=None):
     method = MethodConfig(
         nodes={"background": BackgroundConfig(voxel_size=0.5, num_far_points=200)},
         densify=DensifyConfig(refine_start=8, refine_every=8, reset_every=0, grad_threshold=2e-4),
