@@ -334,9 +334,9 @@ class NuPlanDataparser(Dataparser):
             if lidar.token not in to_ego:
                 to_ego[lidar.token] = pose(lidar.pickled("translation", (3,)), lidar.pickled("rotation", (4,)),
                                            lidar, "rotation")
-                model = lidar.values["model"] if "model" in lidar.values.keys() else None
-                if isinstance(model, str) and model:
-                    model_name = f"nuPlan top LiDAR ({model})"
+                listed = lidar.values["model"] if "model" in lidar.values.keys() else None  # "the lidar model" (schema)
+                if isinstance(listed, str) and listed:
+                    model_name = f"nuPlan top LiDAR ({listed})"
             M = world @ ego_frames[j] @ to_ego[lidar.token]  # (4, 4) LiDAR -> world
             points.append((xyz[keep] @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
             origins[j] = M[:3, 3]
