@@ -11,6 +11,7 @@ from omnire.beams import (
     assign_beams,
     estimate_azimuth_resolution,
     estimate_elevations,
+    median_per_beam,
     points_in_sensor_frame,
     range_image,
     spherical,

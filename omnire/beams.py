@@ -47,6 +47,30 @@ def assign_beams(elevation_deg: np.ndarray, model: BeamModel) -> np.ndarray:
     return order[np.searchsorted(mid, np.asarray(elevation_deg, dtype=np.float64))].astype(np.int16)
 
 
+def median_per_beam(values: np.ndarray, beams: np.ndarray, num_beams: int) -> tuple[np.ndarray, np.ndarray]:
+    """The median of ``values`` (N,) over the returns of each beam, and how many returns each
+    beam has: ``beams`` (N,) integer beam of each return (values outside 0..num_beams-1, e.g.
+    -1 for another sensor, are left out) -> medians (num_beams,) float64 (NaN for a beam
+    without returns) and counts (num_beams,) int64. With the elevations of returns in the
+    sensor frame it measures each laser's elevation where the files number the lasers (a
+    ring or laser column) but do not give their angles."""
+    values = np.asarray(values, dtype=np.float64)
+    beams = np.asarray(beams)
+    if values.shape != beams.shape or values.ndim != 1:
+        raise SceneDataError(f"median_per_beam: values {values.shape} and beams {beams.shape}; expected two (N,)")
+    keep = (beams >= 0) & (beams < num_beams)
+    b = beams[keep].astype(np.int64)
+    v = values[keep]
+    order = np.lexsort((v, b))  # by beam, then value
+    b, v = b[order], v[order]
+    counts = np.bincount(b, minlength=num_beams).astype(np.int64)
+    start = np.cumsum(counts) - counts
+    has = counts > 0
+    medians = np.full(num_beams, np.nan)
+    medians[has] = (v[(start + (counts - 1) // 2)[has]] + v[(start + counts // 2)[has]]) / 2.0
+    return medians, counts
+
+
 def estimate_elevations(elevation_deg: np.ndarray, num_beams: int, bin_deg: float = 0.01,
                         min_separation_deg: float = 0.08) -> np.ndarray:
     """Beam elevations (num_beams,) in degrees, top to bottom, from the elevations (N,) of

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omnire.beams import (assign_beams, estimate_azimuth_resolution, estimate_elevations, points_in_sensor_frame,
-                          range_image, spherical)
+from omnire.beams import (assign_beams, estimate_azimuth_resolution, estimate_elevations, median_per_beam,
+                          points_in_sensor_frame, range_image, spherical)
 from omnire.data.scene import BeamModel, LidarSweeps, SceneDataError
 from omnire.interpolation import interpolate_poses
 
@@ -81,6 +81,27 @@ def test_beams_elevations_and_azimuth_step_recovered():
     assert estimate_azimuth_resolution(az, beam) == pytest.approx(MODEL.azimuth_resolution_deg, abs=0.01)
     with pytest.raises(SceneDataError, match="found 1 elevation peaks, expected 2"):
         estimate_elevations(np.full(100, 3.0), 2)
+
+
+def test_median_per_beam_equals_a_loop_of_medians():
+    """Per-beam medians and counts against np.median beam by beam: even and odd counts, a
+    beam without returns (NaN), returns of another sensor (-1) and past the beams left out;
+    on a sweep, each laser's median elevation is its model elevation."""
+    rng = np.random.default_rng(3)
+    beams = rng.integers(-1, 8, 500)
+    beams[beams == 4] = 9  # beam 4 has no return; 9 is past num_beams
+    values = rng.normal(size=500)
+    medians, counts = median_per_beam(values, beams, 6)
+    for b in range(6):
+        mine = values[beams == b]
+        assert counts[b] == len(mine)
+        assert (np.isnan(medians[b]) and not len(mine)) or medians[b] == np.median(mine)
+    assert counts.sum() == ((beams >= 0) & (beams < 6)).sum() and counts[4] == 0
+    p, beam, _, _ = _sweep(rng)
+    measured, _ = median_per_beam(spherical(p)[2], beam, MODEL.num_beams)
+    np.testing.assert_allclose(measured, MODEL.elevations_deg, atol=1e-9)
+    with pytest.raises(SceneDataError, match="expected two"):
+        median_per_beam(values, beams[:3], 6)
 
 
 def test_range_image_recovers_missing_returns_exactly():

@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from omnire.api import BeamModel, points_in_sensor_frame, spherical
+from omnire.api import BeamModel, median_per_beam, points_in_sensor_frame, spherical
 
 DATASHEET_ELEVATIONS_DEG = np.array([
     -25.0, -15.639, -11.31, -8.843, -7.254, -6.148, -5.333, -4.667, -4.0, -3.667, -3.333, -3.0, -2.667, -2.333,
@@ -57,11 +57,7 @@ def laser_elevations(points: np.ndarray, times: np.ndarray, lasers: np.ndarray, 
     rng, _, el = spherical(points_in_sensor_frame(points[up], times[up], pose_times, sensor_to_world))
     lasers = lasers[up]
     far = rng > MIN_RANGE_M
-    measured = np.full(LASERS, np.nan)
-    for k in range(LASERS):
-        mine = el[far & (lasers == k)]
-        if len(mine):
-            measured[k] = np.median(mine)
+    measured, _ = median_per_beam(el[far], lasers[far], LASERS)
     if np.isnan(measured).any():
         return None
     nearest = np.abs(measured[:, None] - DATASHEET_ELEVATIONS_DEG[None]).argmin(axis=1)

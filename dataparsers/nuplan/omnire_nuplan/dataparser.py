@@ -50,6 +50,7 @@ there, as in the reference's preprocessing; a positive gap interpolates across s
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 from typing import Optional, Type
 
@@ -84,6 +85,14 @@ from omnire_nuplan.database import (
     lookup,
     pose,
     raw_tokens,
+)
+from omnire_nuplan.lidars import (
+    ESTIMATE_SWEEPS,
+    beams_of,
+    check_ring_count,
+    ring_and_lidar,
+    top_beam_model,
+    top_ring_count,
 )
 from omnire_nuplan.pointcloud import read_points
 
@@ -281,18 +290,27 @@ class NuPlanDataparser(Dataparser):
 
     def _lidar(self, db: LogDatabase, frame_pcs: list[Row], ego_frames: np.ndarray, world: np.ndarray,
                blobs: Path) -> LidarSweeps:
+        """The merged sweeps in the world; the top LiDAR's rings as beams with its measured
+        beam model (omnire_nuplan/lidars.py), or no beams and one warning saying why."""
         cfg = self.config
         lidars = index(db.rows("lidar"))
         to_ego: dict[str, np.ndarray] = {}
         points: list[Optional[np.ndarray]] = []
         intensity: list[Optional[np.ndarray]] = []
+        ids: list[Optional[tuple[np.ndarray, np.ndarray]]] = []  # thinned (ring, lidar_info) per sweep
+        top_rings: list[tuple[Path, int]] = []  # each blob's largest top-LiDAR ring, for the ring count
+        estimate: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # first sweeps, not thinned
         origins = np.full((len(frame_pcs), 3), np.nan)
+        sensor_to_world = np.full((len(frame_pcs), 4, 4), np.nan)
         missing = []
+        lacking_ids: Optional[Path] = None
+        model_name = "nuPlan top LiDAR"
         for j, pc in enumerate(frame_pcs):
             path = blobs / pc.text("filename")
             if not path.is_file():  # a sweep not downloaded: a gap
                 points.append(None)
                 intensity.append(None)
+                ids.append(None)
                 missing.append(path)
                 continue
             rec = read_points(path)
@@ -301,24 +319,47 @@ class NuPlanDataparser(Dataparser):
                 raise NuPlanDataError(f"{path}: non-finite x, y, z values (table lidar_pc row {pc.token})")
             has_value = rec.dtype.names is not None and "intensity" in rec.dtype.names
             keep = thin_points(np.arange(len(xyz)), cfg.max_lidar_points_per_frame, pc.integer("timestamp"))  # keyed by the sweep
-            xyz = xyz[keep]
+            ring_lidar = ring_and_lidar(rec, path)
+            if ring_lidar is None:
+                lacking_ids = lacking_ids or path
+                ids.append(None)
+            else:
+                top_rings.append((path, top_ring_count(*ring_lidar) - 1))
+                if len(estimate) < ESTIMATE_SWEEPS:
+                    estimate.append((xyz, *ring_lidar))
+                ids.append((ring_lidar[0][keep], ring_lidar[1][keep]))
             intensity.append(BYTE_INTENSITY.to_unit(rec["intensity"], f"{path}: field intensity", NuPlanDataError)[keep]
                              if has_value else None)
             lidar = lookup(lidars, pc, "lidar_token", "lidar")
             if lidar.token not in to_ego:
                 to_ego[lidar.token] = pose(lidar.pickled("translation", (3,)), lidar.pickled("rotation", (4,)),
                                            lidar, "rotation")
+                listed = lidar.values["model"] if "model" in lidar.values.keys() else None  # "the lidar model" (schema)
+                if isinstance(listed, str) and listed:
+                    model_name = f"nuPlan top LiDAR ({listed})"
             M = world @ ego_frames[j] @ to_ego[lidar.token]  # (4, 4) LiDAR -> world
-            points.append((xyz @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
+            points.append((xyz[keep] @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
             origins[j] = M[:3, 3]
+            sensor_to_world[j] = M
         if len(missing) == len(frame_pcs):
             raise NuPlanFileMissing(f"{missing[0]}: none of the {len(frame_pcs)} LiDAR blobs of the loaded frames exists "
                                     "(table lidar_pc column filename; is --sensor-blobs right?); --no-load-lidar "
                                     "skips LiDAR")
-        # Intensity 0-255 / 255 (merged clouds of five LiDARs with their own rings: no single
-        # beam model); all sweeps or none carry it.
+        # Intensity 0-255 / 255; all sweeps or none carry it.
         carried = all(v is not None for v, p in zip(intensity, points) if p is not None)
-        return LidarSweeps(points=points, origins=origins, intensity=intensity if carried else None)
+        if lacking_ids is not None:
+            model, why = None, f"{lacking_ids} has no ring and lidar_info fields"
+        else:
+            model, why = top_beam_model(estimate, model_name)
+        beams = None
+        if model is None:
+            warnings.warn(f"{db.path}: the nuPlan sweeps carry no beams (no ray-drop targets): {why}", stacklevel=2)
+        else:
+            for path, largest in top_rings:
+                check_ring_count(path, largest, model)
+            beams = [None if i is None else beams_of(*i) for i in ids]
+        return LidarSweeps(points=points, origins=origins, intensity=intensity if carried else None,
+                           sensor_to_world=sensor_to_world, beams=beams, beam_model=model)
 
     def _tracks(self, db: LogDatabase, frame_pcs: list[Row], frame_us: np.ndarray,
                 world: np.ndarray) -> list[ActorTrack]:

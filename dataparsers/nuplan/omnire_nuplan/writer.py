@@ -24,9 +24,14 @@ minimal_db_test_utils.py``)::
 - Cameras: synthetic cameras 0..7 are CAM_F0, CAM_L0, CAM_R0, CAM_L1, CAM_R1, CAM_L2, CAM_R2,
   CAM_B0; intrinsic in the integer-pixel-centre convention (cx, cy = ours - 0.5); distortion
   all zero (the synthetic images are pinhole).
-- MergedPointCloud: one ``lidar`` row (at the synthetic sensor's position, slightly turned
-  and tilted); ``.pcd`` binary with float32 x y z intensity (0-255) ring lidar_info (ring and
-  lidar_info 0: the synthetic LiDAR has no beam or sensor ids).
+- MergedPointCloud: one ``lidar`` row (at the synthetic sensor's position, turned about its z
+  axis: a tilt would take the rings off the cones of the written frame, which must be the top
+  LiDAR's own for the reader to measure its beams); ``.pcd`` binary with float32 x y z
+  intensity (0-255) ring lidar_info, as merged clouds hold them (omnire_nuplan/lidars.py):
+  the synthetic LiDAR is the top LiDAR (lidar_info 0, ring = its beam, numbered by ascending
+  elevation as the generator spaces them), except its returns in the :data:`BACK_SECTOR_DEG`
+  azimuths (sensor frame), written as the back LiDAR's (lidar_info 3, its own ring numbering:
+  beams top to bottom).
 - lidar_box: global centre, yaw, width / length / height, velocity from the neighbouring
   sweeps, confidence 1; tracks with their category (vehicle, pedestrian, bicycle).
 """
@@ -40,7 +45,17 @@ from pathlib import Path
 
 import numpy as np
 
-from omnire.api import UserError, atomic_write_bytes, axis_rotation, interpolate_poses, interpolate_track, rotmat_to_quat
+from omnire.api import (
+    BeamModel,
+    UserError,
+    assign_beams,
+    atomic_write_bytes,
+    axis_rotation,
+    interpolate_poses,
+    interpolate_track,
+    rotmat_to_quat,
+    spherical,
+)
 from omnire_nuplan.dataparser import CAMERAS
 from omnire_nuplan.pointcloud import write_pcd
 from omnire.api import BYTE_INTENSITY, rigid
@@ -50,8 +65,12 @@ LOG = "2021.06.07.12.54.00_veh-99_00001_00100"
 """Log name (a real one's form: date, vehicle, start and end sweep); veh-99 marks it synthetic."""
 GLOBAL_FROM_GENERATOR = rigid(axis_rotation(2, 0.4), (664180.25, 3997120.75, 606.5))
 """Generator world -> the written global frame (UTM-sized, as nuPlan's): a turn and a shift."""
-LIDAR_TO_EGO_ROTATION = axis_rotation(2, 0.02) @ axis_rotation(0, np.deg2rad(0.3))
-"""Rotation of the written MergedPointCloud frame in the ego frame (a small turn and tilt)."""
+LIDAR_TO_EGO_ROTATION = axis_rotation(2, 0.02)
+"""Rotation of the written MergedPointCloud frame in the ego frame (a small turn about z)."""
+BACK_SECTOR_DEG = (160.0, 200.0)
+"""Azimuths (sensor frame, degrees) whose synthetic returns are written as the back LiDAR's."""
+BACK_LIDAR = 3
+"""``lidar_info`` of the back LiDAR (nuplan-devkit's numbering, omnire_nuplan/lidars.py)."""
 FIRST_US = 1623070440050112
 CATEGORIES = ("vehicle", "bicycle", "pedestrian", "traffic_cone", "barrier", "czone_sign", "generic_object")
 """The nuPlan categories (nuplan-devkit minimal_db_test_utils.py, schema 'category')."""
@@ -137,6 +156,7 @@ def write_nuplan(src: SyntheticSource, output: Path) -> dict:
                           _pickle(lidar_to_ego[:3, 3]), _pickle(rotmat_to_quat(lidar_to_ego[:3, :3]))))
 
     # LiDAR sweeps: points of the frame at or before each sweep, in the sweep's sensor frame.
+    beams = synthetic_beam_model(src)
     pc_tok = [token("lidar_pc", LOG, s) for s in range(S)]
     for s in range(S):
         f = s // 2
@@ -151,6 +171,7 @@ def write_nuplan(src: SyntheticSource, output: Path) -> dict:
         rec = np.zeros(len(local), dtype=[(n, "<f4") for n in ("x", "y", "z", "intensity", "ring", "lidar_info")])
         rec["x"], rec["y"], rec["z"] = local.T
         rec["intensity"] = BYTE_INTENSITY.from_unit(inten)
+        rec["ring"], rec["lidar_info"] = rings_and_lidars(src, f, beams)
         atomic_write_bytes(blobs_path(output) / rel, write_pcd(rec))
 
     # Cameras: one image per frame at the frame time, each with its own ego_pose row.
@@ -176,6 +197,27 @@ def write_nuplan(src: SyntheticSource, output: Path) -> dict:
     src.save_ground_truth(output, GLOBAL_FROM_GENERATOR, "nuPlan log layout; file_from_generator maps to the "
                           "nuPlan global frame; frame f is lidar_pc 2f")
     return {"frames": F, "sweeps": S, "channels": list(channels), "first_us": FIRST_US, "log": LOG}
+
+
+def synthetic_beam_model(src: SyntheticSource) -> BeamModel:
+    """The generator's LiDAR (``omnire synth`` options ``lidar_*``; its defaults where the
+    ground truth does not list them): beams evenly spaced over the elevation range."""
+    opts = src.meta.get("options", {})
+    return BeamModel(np.linspace(*opts.get("lidar_elevation_deg", (-25.0, 10.0)), int(opts.get("lidar_beams", 32))),
+                     float(opts.get("lidar_azimuth_step_deg", 0.4)), float(opts.get("lidar_max_range", 120.0)),
+                     float(opts.get("lidar_min_range", 0.3)), "synthetic")
+
+
+def rings_and_lidars(src: SyntheticSource, f: int, model: BeamModel) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) ring and (N,) lidar_info of frame ``f``'s returns: each return's beam (nearest
+    elevation in the synthetic LiDAR's frame at ``f``, whose axes are the ego's) for the top
+    LiDAR; in :data:`BACK_SECTOR_DEG` the back LiDAR, rings numbered from the top beam."""
+    sensor = src.ego[f] @ src.lidar_to_ego
+    _, az, el = spherical((src.points(f) - sensor[:3, 3]) @ sensor[:3, :3])
+    beam = assign_beams(el, model).astype(np.int64)
+    back = (az >= BACK_SECTOR_DEG[0]) & (az < BACK_SECTOR_DEG[1])
+    ring = np.where(back, model.num_beams - 1 - beam, beam)
+    return ring, np.where(back, BACK_LIDAR, 0)
 
 
 def _boxes(src: SyntheticSource, rows: dict, sweep_t: np.ndarray, pc_tok: list[bytes]) -> None:

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from hostile import run_case
+from omnire_nuplan.pointcloud import parse_pcd, write_pcd
 from omnire_nuplan.writer import LOG, blobs_path, database_path, load_source, write_nuplan
 
 SMALL = ["--scale", "1", "--trainer.max-steps", "1", "--trainer.no-progress", "--method.rasterizer", "torch"]
@@ -129,6 +130,16 @@ def _not_a_pcd(root):
     return str(path)
 
 
+def _bad_ring(value: float):
+    def corrupt(root):
+        path = first_blob(root, "MergedPointCloud")
+        rec = parse_pcd(path.read_bytes(), path).copy()
+        rec["ring"][5] = value
+        path.write_bytes(write_pcd(rec))
+        return f"{path}: field ring must hold whole numbers in 0..32767 (found {value:g} at point 5"
+    return corrupt
+
+
 def _no_sensor_blobs(root):
     shutil.rmtree(blobs_path(root))
     return "no sensor_blobs folder beside the log database"
@@ -143,6 +154,7 @@ CORRUPT = {
     "missing database": _missing_db, "garbage database": _garbage_db, "truncated database": _truncated_db,
     "missing image blob": _missing_image, "no lidar blobs": _no_lidar_blobs,
     "truncated pcd": _truncated_pcd, "not a pcd": _not_a_pcd, "no sensor blobs": _no_sensor_blobs,
+    "negative ring": _bad_ring(-1.0), "fractional ring": _bad_ring(2.5),
     "two databases": _two_databases,
     **{case: _sql_case(*spec) for case, spec in SQL_CASES.items()},
 }

@@ -16,11 +16,20 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from omnire.api import first_pose_world, interpolate_poses
+from omnire.api import first_pose_world, interpolate_poses, rigid
 from omnire_nuplan import CAMERAS, NuPlanConfig, category_of, parse_pcd
 from omnire_nuplan.database import NuPlanDataError
 from omnire_nuplan.pointcloud import write_pcd
-from omnire_nuplan.writer import FIRST_US, LOG, blobs_path, database_path, load_source, write_nuplan
+from omnire_nuplan.writer import (
+    FIRST_US,
+    LIDAR_TO_EGO_ROTATION,
+    LOG,
+    blobs_path,
+    database_path,
+    load_source,
+    synthetic_beam_model,
+    write_nuplan,
+)
 
 FRAMES = 6
 
@@ -121,6 +130,70 @@ def test_lidar_points(synth):
         np.testing.assert_allclose(value, synth.src.intensity[f], atol=1e-6)
     origin = synth.E @ synth.gt["ego_to_world"][0] @ np.append(synth.src.lidar_to_ego[:3, 3], 1.0)
     assert np.abs(s.lidar.origins[0] - origin[:3]).max() < 1e-6
+
+
+def _blob(root: Path, frame: int) -> Path:
+    """The MergedPointCloud blob of ``frame`` (lidar_pc 2 * frame)."""
+    conn = sqlite3.connect(database_path(root))
+    try:
+        fn = conn.execute("SELECT filename FROM lidar_pc ORDER BY timestamp").fetchall()[2 * frame][0]
+    finally:
+        conn.close()
+    return blobs_path(root) / fn
+
+
+def test_lidar_beams_and_beam_model(synth):
+    """The top LiDAR's rings (lidar_info 0) are the beams, the back LiDAR's returns -1; the
+    elevations measured from the returns are the synthetic LiDAR's; the sensor pose is the
+    lidar row's; the format records no point times."""
+    lidar, E = synth.scene.lidar, synth.E
+    want = synthetic_beam_model(synth.src)
+    model = lidar.beam_model
+    assert model.num_beams == want.num_beams == 16
+    assert np.abs(model.elevations_deg - want.elevations_deg).max() < 0.05
+    assert model.azimuth_resolution_deg == pytest.approx(want.azimuth_resolution_deg, abs=1e-3)
+    assert lidar.times is None
+    others = 0
+    for f in range(FRAMES):
+        rec = parse_pcd(_blob(synth.out, f).read_bytes(), Path("blob"))
+        top = rec["lidar_info"] == 0
+        np.testing.assert_array_equal(lidar.beams[f], np.where(top, rec["ring"], -1))
+        others += int((~top).sum())
+        sensor = E @ synth.gt["ego_to_world"][f] @ rigid(LIDAR_TO_EGO_ROTATION, synth.src.lidar_to_ego[:3, 3])
+        assert np.abs(lidar.sensor_to_world[f] - sensor).max() < 1e-6
+    assert others > 0  # the back LiDAR's returns are there, with beam -1
+
+
+def test_untrusted_rings_leave_no_beams(synth, tmp_path):
+    """Rings that are not the top LiDAR's cones (every ring number shuffled at random): no
+    beams, one warning saying why, the points still read."""
+    root = tmp_path / "log"
+    shutil.copytree(synth.out, root)
+    rng = np.random.default_rng(0)
+    for f in range(2):
+        path = _blob(root, f)
+        rec = parse_pcd(path.read_bytes(), path).copy()
+        rec["ring"] = rng.integers(0, 16, len(rec))
+        path.write_bytes(write_pcd(rec))
+    with pytest.warns(UserWarning, match=r"carry no beams .*ring \d+'s returns lie [\d.]+ degrees"):
+        s = parse(root)
+    assert s.lidar.beams is None and s.lidar.beam_model is None
+    assert all(np.array_equal(a, b) for a, b in zip(s.lidar.points, synth.scene.lidar.points))
+
+
+def test_ring_beyond_the_ring_count_is_refused(synth, tmp_path):
+    """A top-LiDAR ring past the rings of the beam model (measured on the first two sweeps)
+    in a later sweep: one error naming the blob and the field (negative and fractional
+    rings: test_nuplan_hostile.py)."""
+    root = tmp_path / "log"
+    shutil.copytree(synth.out, root)
+    path = _blob(root, 4)
+    rec = parse_pcd(path.read_bytes(), path).copy()
+    rec["ring"][np.flatnonzero(rec["lidar_info"] == 0)[3]] = 16.0
+    path.write_bytes(write_pcd(rec))
+    with pytest.raises(NuPlanDataError, match=rf"{re.escape(str(path))}: field ring holds 16 for a return of the top "
+                                              r"LiDAR \(lidar_info 0\); expected a whole number in 0..15, the 16 rings"):
+        parse(root)
 
 
 def test_frame_step_range_and_cameras(synth):
