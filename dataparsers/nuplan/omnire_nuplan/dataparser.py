@@ -89,7 +89,6 @@ from omnire_nuplan.database import (
 from omnire_nuplan.lidars import (
     ESTIMATE_SWEEPS,
     beams_of,
-    check_ring_count,
     ring_and_lidar,
     top_beam_model,
     top_ring_count,
@@ -298,8 +297,9 @@ class NuPlanDataparser(Dataparser):
         points: list[Optional[np.ndarray]] = []
         intensity: list[Optional[np.ndarray]] = []
         ids: list[Optional[tuple[np.ndarray, np.ndarray]]] = []  # thinned (ring, lidar_info) per sweep
-        top_rings: list[tuple[Path, int]] = []  # each blob's largest top-LiDAR ring, for the ring count
-        estimate: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # first sweeps, not thinned
+        ring_count = 0  # of the top LiDAR: its largest ring over every loaded blob + 1
+        estimate: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # sweeps spread over the log, not thinned
+        measured = set(np.linspace(0, len(frame_pcs) - 1, ESTIMATE_SWEEPS).round().astype(int).tolist())
         origins = np.full((len(frame_pcs), 3), np.nan)
         sensor_to_world = np.full((len(frame_pcs), 4, 4), np.nan)
         missing = []
@@ -324,8 +324,8 @@ class NuPlanDataparser(Dataparser):
                 lacking_ids = lacking_ids or path
                 ids.append(None)
             else:
-                top_rings.append((path, top_ring_count(*ring_lidar) - 1))
-                if len(estimate) < ESTIMATE_SWEEPS:
+                ring_count = max(ring_count, top_ring_count(*ring_lidar))
+                if j in measured:
                     estimate.append((xyz, *ring_lidar))
                 ids.append((ring_lidar[0][keep], ring_lidar[1][keep]))
             intensity.append(BYTE_INTENSITY.to_unit(rec["intensity"], f"{path}: field intensity", NuPlanDataError)[keep]
@@ -350,13 +350,11 @@ class NuPlanDataparser(Dataparser):
         if lacking_ids is not None:
             model, why = None, f"{lacking_ids} has no ring and lidar_info fields"
         else:
-            model, why = top_beam_model(estimate, model_name)
+            model, why = top_beam_model(estimate, ring_count, model_name)
         beams = None
         if model is None:
             warnings.warn(f"{db.path}: the nuPlan sweeps carry no beams (no ray-drop targets): {why}", stacklevel=2)
         else:
-            for path, largest in top_rings:
-                check_ring_count(path, largest, model)
             beams = [None if i is None else beams_of(*i) for i in ids]
         return LidarSweeps(points=points, origins=origins, intensity=intensity if carried else None,
                            sensor_to_world=sensor_to_world, beams=beams, beam_model=model)

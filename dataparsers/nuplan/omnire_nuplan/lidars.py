@@ -13,7 +13,7 @@ Facts used (sources in dataparsers/nuplan/README.md, "LiDAR beams"):
 
 So the top LiDAR (:data:`TOP`) is the sweep's sensor: its rings are the beams, the other
 LiDARs' returns have beam -1 (they supervise depth, not the ray-drop model). Its beam model
-is measured from the first :data:`ESTIMATE_SWEEPS` sweeps in the ``lidar`` row's frame
+is measured on :data:`ESTIMATE_SWEEPS` sweeps spread over the log in the ``lidar`` row's frame
 (:func:`top_beam_model`) and trusted only when every ring holds enough returns, lies on a
 narrow cone and has its own elevation; otherwise the sweeps get no beams.
 """
@@ -32,9 +32,11 @@ TOP = 0
 LIDAR_NAMES = {0: "top", 1: "right A-pillar", 2: "left A-pillar", 3: "back", 4: "front"}
 """``lidar_info`` -> LiDAR, as the devkit documents it (a later reader of the released
 clouds, py123d, reports 1 and 2 the other way round; only 0 matters here)."""
-ESTIMATE_SWEEPS = 2
-"""The beam model is measured on this many first loaded sweeps (tens of thousands of returns
-of the top LiDAR); their top-LiDAR rings set the ring count every other sweep must keep."""
+ESTIMATE_SWEEPS = 4
+"""The beam model is measured on this many loaded sweeps, spread evenly over the log (a ring
+aimed at open sky can go without returns for a while); the ring count is every loaded
+sweep's largest top-LiDAR ring + 1, so a ring first seen late leaves the model untrusted
+(no beams, a warning) instead of failing the log."""
 MIN_RANGE_M = 2.0
 """Returns nearer than this are left out of the elevation measurement (a laser's offset from
 the optical centre bends near returns' elevations)."""
@@ -70,7 +72,7 @@ def ring_and_lidar(records: np.ndarray, path: Path) -> Optional[tuple[np.ndarray
     return out[0], out[1]
 
 
-def top_beam_model(sweeps: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+def top_beam_model(sweeps: list[tuple[np.ndarray, np.ndarray, np.ndarray]], ring_count: int,
                    name: str) -> tuple[Optional[BeamModel], str]:
     """The top LiDAR's :class:`BeamModel` measured from sweeps, or None and why it is not
     trusted.
@@ -78,19 +80,20 @@ def top_beam_model(sweeps: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     Args:
         sweeps: per sweep (xyz (N, 3) in the ``lidar`` row's frame, ring (N,), lidar_info
             (N,)), every record of the blob (not thinned: the azimuth step needs them all).
+        ring_count: the top LiDAR's rings (the largest ring of every loaded sweep + 1).
         name: the model's name.
     Beam ``r`` is ring ``r``; its elevation is the median of ring ``r``'s returns beyond
-    :data:`MIN_RANGE_M`; the ring count is the largest ring + 1. The azimuth step is
+    :data:`MIN_RANGE_M`, measured on ``sweeps``. The azimuth step is
     :func:`estimate_azimuth_resolution` on the first sweep, the maximum range the farthest
     return rounded up to a metre (no datasheet gives it).
     """
     top = [(xyz[lid == TOP], ring[lid == TOP]) for xyz, ring, lid in sweeps]
-    where = f"the first {len(sweeps)} sweep(s)"
+    where = f"{len(sweeps)} sweep(s) spread over the log"
     if not sum(len(r) for _, r in top):
         return None, f"no return of the top LiDAR (lidar_info {TOP}) in {where}"
     rings = np.concatenate([r for _, r in top]).astype(np.int64)
     rng, _, el = spherical(np.concatenate([p for p, _ in top]))
-    B = int(rings.max()) + 1
+    B = max(int(ring_count), int(rings.max()) + 1)
     far = rng > MIN_RANGE_M
     elevations, counts = median_per_beam(el[far], rings[far], B)
     few = np.flatnonzero(counts < MIN_RING_RETURNS)
@@ -126,13 +129,3 @@ def top_ring_count(ring: np.ndarray, lidar: np.ndarray) -> int:
     """Largest top-LiDAR ring of a blob + 1 (0 without top-LiDAR returns)."""
     top = ring[lidar == TOP]
     return int(top.max()) + 1 if len(top) else 0
-
-
-def check_ring_count(path: Path, largest_ring: int, model: BeamModel) -> None:
-    """A blob's largest top-LiDAR ring must index ``model``'s beams (the rings the first
-    :data:`ESTIMATE_SWEEPS` sweeps show); else a :class:`NuPlanDataError` naming the file."""
-    B = model.num_beams
-    if largest_ring >= B:
-        raise NuPlanDataError(f"{path}: field ring holds {largest_ring} for a return of the top LiDAR (lidar_info "
-                              f"{TOP}); expected a whole number in 0..{B - 1}, the {B} rings of the top LiDAR in the "
-                              f"first {ESTIMATE_SWEEPS} loaded sweeps")
