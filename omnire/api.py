@@ -7,10 +7,12 @@ import-linter contract in pyproject.toml keeps plugin packages to these two).
 docs/plugins.md shows each in use.
 """
 from omnire.beams import (
+    BeamFit,
     RangeImage,
     assign_beams,
     estimate_azimuth_resolution,
     estimate_elevations,
+    fit_beams,
     median_per_beam,
     points_in_sensor_frame,
     range_image,

@@ -8,6 +8,7 @@ degrees, elevation above the x-y plane in degrees.
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 import numpy as np
 
@@ -178,3 +179,92 @@ def range_image(ranges: np.ndarray, azimuth_deg: np.ndarray, beams: np.ndarray, 
     rng[hit] = ranges[point[hit]]
     return RangeImage(rng.reshape(B, A), hit.reshape(B, A), point.reshape(B, A), offset,
                       int(len(cell_s) - first.sum()))
+
+
+@dataclasses.dataclass
+class BeamFit:
+    """The beams of a sensor whose returns carry no laser index, measured from its sweeps
+    (:func:`fit_beams`).
+
+    Attributes:
+        model: the measured :class:`BeamModel`, None when the measurement is not trusted.
+        beams: per sweep, (N_i,) int16 beam of each return (None where the sweep is None,
+            and everywhere when ``model`` is None).
+        share_within: share of the returns beyond ``min_range`` lying within the tolerance
+            of their beam's elevation (NaN when no elevations were found).
+        reason: empty when trusted, else one line saying why not.
+    """
+
+    model: Optional[BeamModel]
+    beams: Optional[list[Optional[np.ndarray]]]
+    share_within: float
+    reason: str
+
+
+def fit_beams(points_sensor: list[Optional[np.ndarray]], num_beams: int, max_range: float, name: str,
+              min_range: float = 3.0, tolerance_deg: float = 0.08, min_share: float = 0.9,
+              min_beam_share: float = 0.05, sample_sweeps: int = 10) -> BeamFit:
+    """Measure a spinning LiDAR's beams from sweeps without laser indices.
+
+    Args:
+        points_sensor: per sweep, (N_i, 3) returns in the sensor frame (None = no sweep).
+            Each sweep must be one revolution seen from one pose (a motion-corrected or
+            stationary sweep), since the elevations are read from these coordinates.
+        num_beams: lasers of the sensor (its datasheet); max_range: metres (its datasheet).
+        min_range: only returns farther than this measure the elevations and the share
+            (a laser's offset from the optical centre bends near returns' elevations).
+        tolerance_deg, min_share: the fit is trusted when at least ``min_share`` of those
+            returns lie within ``tolerance_deg`` of their beam's elevation, and every beam
+            holds at least ``min_beam_share`` of the mean count of sampled returns per beam
+            (else a peak of noise stands in for a laser).
+        sample_sweeps: the elevations and the azimuth step are measured on this many
+            sweeps spread over the log (all sweeps get beams).
+    The elevations are :func:`estimate_elevations` of the sampled returns, each return's
+    beam :func:`assign_beams`, the azimuth step :func:`estimate_azimuth_resolution`
+    rounded to a whole number of steps per revolution.
+    """
+    present = [i for i, p in enumerate(points_sensor) if p is not None and len(p)]
+    if not present:
+        return BeamFit(None, None, float("nan"), "no returns")
+    sample = sorted({present[int(k)] for k in np.linspace(0, len(present) - 1, min(sample_sweeps, len(present)))})
+    sph = {i: spherical(points_sensor[i]) for i in sample}
+    far_el = np.concatenate([el[rng > min_range] for rng, _, el in sph.values()])
+    if len(far_el) < 10 * num_beams:
+        return BeamFit(None, None, float("nan"), f"{len(far_el)} returns beyond {min_range:g} m, too few to "
+                                                  f"measure {num_beams} beams")
+    try:
+        elevations = estimate_elevations(far_el, num_beams)
+    except SceneDataError as err:
+        return BeamFit(None, None, float("nan"), str(err))
+    probe = BeamModel(elevations, 360.0, max_range, name=name)  # the azimuth step is measured below
+    counts = np.bincount(assign_beams(far_el, probe), minlength=num_beams)
+    weakest = int(counts.argmin())
+    if counts[weakest] < min_beam_share * len(far_el) / num_beams:  # a noise peak, not a laser
+        return BeamFit(None, None, float("nan"), f"the beam at {elevations[weakest]:.2f} deg holds "
+                                                  f"{counts[weakest]} of {len(far_el)} sampled returns, not one of "
+                                                  f"{num_beams} lasers")
+    beams: list[Optional[np.ndarray]] = [None] * len(points_sensor)
+    within = total = 0
+    steps = []
+    for i in present:
+        rng, az, el = sph[i] if i in sph else spherical(points_sensor[i])
+        b = assign_beams(el, probe)
+        far = rng > min_range
+        within += int((np.abs(el[far] - elevations[b[far]]) <= tolerance_deg).sum())
+        total += int(far.sum())
+        if i in sph and len(b) > 1:
+            try:
+                steps.append(estimate_azimuth_resolution(az, b))
+            except SceneDataError:  # no beam with two returns in this sweep
+                pass
+        beams[i] = b
+    share = within / max(total, 1)
+    if share < min_share:
+        return BeamFit(None, None, share, f"only {share:.1%} of the returns beyond {min_range:g} m lie within "
+                                          f"{tolerance_deg:g} deg of their beam's elevation (at least {min_share:.0%} "
+                                          f"expected of {num_beams} beams)")
+    if not steps:
+        return BeamFit(None, None, share, "no beam has two returns in a sweep: the azimuth step is unknown")
+    columns = int(round(360.0 / float(np.median(steps))))
+    model = BeamModel(elevations, 360.0 / columns, max_range, name=name)
+    return BeamFit(model, beams, share, "")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omnire.beams import (assign_beams, estimate_azimuth_resolution, estimate_elevations, median_per_beam,
+from omnire.beams import (assign_beams, estimate_azimuth_resolution, estimate_elevations, fit_beams, median_per_beam,
                           points_in_sensor_frame, range_image, spherical)
 from omnire.data.scene import BeamModel, LidarSweeps, SceneDataError
 from omnire.interpolation import interpolate_poses
@@ -102,6 +102,24 @@ def test_median_per_beam_equals_a_loop_of_medians():
     np.testing.assert_allclose(measured, MODEL.elevations_deg, atol=1e-9)
     with pytest.raises(SceneDataError, match="expected two"):
         median_per_beam(values, beams[:3], 6)
+
+
+def test_fit_beams_measures_a_sensor_without_laser_indices():
+    rng = np.random.default_rng(4)
+    sweeps = [_sweep(rng) for _ in range(3)]
+    fit = fit_beams([p for p, *_ in sweeps] + [None], MODEL.num_beams, 100.0, "toy", min_range=2.0)
+    assert fit.reason == "" and fit.share_within == 1.0 and fit.beams[-1] is None
+    np.testing.assert_allclose(fit.model.elevations_deg, np.sort(MODEL.elevations_deg)[::-1], atol=1e-9)
+    assert fit.model.azimuth_resolution_deg == pytest.approx(MODEL.azimuth_resolution_deg, abs=1e-9)
+    for (_, beam, _, _), measured in zip(sweeps, fit.beams):  # same elevation, whatever the numbering
+        np.testing.assert_allclose(fit.model.elevations_deg[measured], MODEL.elevations_deg[beam], atol=1e-9)
+    # Refused: elevations spread evenly (no lasers), a laser short, no returns at all.
+    d = rng.normal(size=(20000, 3))
+    spread = fit_beams([d / np.linalg.norm(d, axis=1, keepdims=True) * 30.0], MODEL.num_beams, 100.0, "toy")
+    assert spread.model is None and spread.beams is None and spread.reason
+    short = fit_beams([p for p, *_ in sweeps], MODEL.num_beams + 1, 100.0, "toy", min_range=2.0)
+    assert short.model is None and "found 9 elevation peaks, expected 10" in short.reason
+    assert fit_beams([None, np.zeros((0, 3))], 4, 100.0, "toy").reason == "no returns"
 
 
 def test_range_image_recovers_missing_returns_exactly():

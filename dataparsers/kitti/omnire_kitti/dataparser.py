@@ -27,8 +27,10 @@ Conventions (KITTI devkit readmes and "Vision meets Robotics: The KITTI Dataset"
   rectified and undistorted: no distortion coefficients.
 - LiDAR: the Velodyne (HDL-64E) frame is x forward, y left, z up: ``sensor_to_world`` is it
   at the frame's time; reflectance (0-1) is the intensity. The files hold no per-point time
-  and no laser index, and the HDL-64E's elevations are per-unit calibration values KITTI
-  does not publish, so ``times``, ``beams`` and ``beam_model`` are None.
+  (``times`` is None) and no laser index, and the HDL-64E's elevations are per-unit
+  calibration values KITTI does not publish: the 64 beams are measured from the loaded
+  sweeps (omnire_kitti/hdl64e.py) and give ``beams`` and ``beam_model``; when the
+  measurement is not trusted both stay None and one warning says why.
 - Pixels: the devkit gives 2D boxes "in the image (0-based index)" in the same pixel
   coordinates P_i projects to, i.e. pixel centres at integers; K gets +0.5 px for omnire.
 - Labels: per row frame, track id, type, truncated, occluded, alpha, 2D box (4), dimensions
@@ -42,6 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import warnings
 from pathlib import Path
 from typing import Literal, Optional, Type
 
@@ -52,6 +55,8 @@ from omnire.api import (
     SceneData, SceneDataError, axis_rotation, first_pose_world, frame_range, image_size, is_stationary, loaded_camera,
     majority_label, require_files, resample_track, thin_points,
 )
+
+from omnire_kitti import hdl64e
 
 CAMERAS = ("image_02", "image_03")
 """KITTI colour cameras: left (P2) and right (P3)."""
@@ -339,8 +344,14 @@ class KittiDataparser(Dataparser):
             points.append((rows[:, :3] @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
             reflectance.append(rows[:, 3].astype(np.float32))
             sensor_to_world[j] = M
+        fit = hdl64e.measure_beams(points, sensor_to_world) if cfg.estimate_beams else None
+        if fit is not None and fit.model is None:
+            warnings.warn(f"{folder}: the sweeps get no beams: {fit.reason} (--no-estimate-beams skips the "
+                          "measurement)", stacklevel=3)
+        trusted = fit is not None and fit.model is not None
         return LidarSweeps(points=points, origins=sensor_to_world[:, :3, 3].copy(), intensity=reflectance,
-                           sensor_to_world=sensor_to_world)
+                           sensor_to_world=sensor_to_world, beams=fit.beams if trusted else None,
+                           beam_model=fit.model if trusted else None)
 
     def _tracks(self, path: Path, n_log: int, frames: np.ndarray, times: np.ndarray,
                 rect_to_world: np.ndarray) -> list[ActorTrack]:
@@ -382,3 +393,5 @@ class KittiConfig(LogDataparserConfig):
     """Frame rate of the sequence (KITTI: 10 Hz); timestamps are frame / fps."""
     max_track_gap: MaxTrackGap = 0.5
     """Interpolate a track across unlabelled frames when the labels around them are at most this many seconds apart (labels come at 10 Hz); across longer gaps the actor is absent. 0 keeps the labelled frames only."""
+    estimate_beams: bool = True
+    """Measure the HDL-64E's 64 beams from the sweeps and give every return its beam (omnire_kitti/hdl64e.py); --no-estimate-beams leaves the sweeps without beams."""

@@ -20,7 +20,9 @@ Written (``<output>/training/``, sequence 0000), as the tracking release has it:
   latitude / longitude / altitude (inverse of the devkit's Mercator projection, first frame
   in Karlsruhe) and roll / pitch / yaw, with velocities, accelerations (gravity included)
   and yaw rate from finite differences. The Velodyne frame sits at the synthetic LiDAR's
-  position with a small mounting rotation; scans are float32 x y z reflectance.
+  position with a small mounting yaw; scans are float32 x y z reflectance of the returns
+  (rays that came back empty are not stored, as in KITTI). Generated with
+  :data:`HDL64E_LIKE_ELEVATIONS_DEG`, the sweeps have an HDL-64E's 64 uneven beams.
 - Labels: boxes present in a frame whose projection meets image_02 (as KITTI labels objects
   seen by the camera); types Car / Pedestrian / Cyclist; track id = actor index; values with
   the release's 6 decimals; truncation 0/1/2 from the share of the 2D box outside the image.
@@ -43,8 +45,17 @@ FIRST_YAW = -1.2219096732051
 """Heading of frame 0 (radians, 0 = east, counter-clockwise)."""
 CAMERA_T = {0: (0.0, 0.0, 0.0), 1: (-0.5372, 0.0, 0.0), 2: (0.0595, -0.00049, 0.0050), 3: (-0.4725, 0.0033, 0.0045)}
 """t_i = K^-1 P_i[:, 3] (metres): camera i sits at -t_i in rectified camera-0 coordinates (KITTI-like rig)."""
-VELODYNE_AXES = rot_axis(2, np.deg2rad(0.4)) @ rot_axis(0, np.deg2rad(0.2))
-"""Velodyne mounting rotation in the IMU frame (x forward, y left, z up, slightly off)."""
+VELODYNE_AXES = rot_axis(2, np.deg2rad(0.4))
+"""Velodyne mounting rotation in the IMU frame (x forward, y left, z up, slightly off): a yaw
+only, since the synthetic sweeps are cast in the LiDAR's own frame and a tilt would make
+each beam's elevation in the Velodyne frame vary with azimuth."""
+HDL64E_LIKE_ELEVATIONS_DEG = tuple(float(v) for v in np.round(np.concatenate([
+    np.linspace(2.0, -8.33, 32) + 0.04 * np.sin(np.arange(32) * 1.7),  # upper block: ~1/3 degree apart
+    np.linspace(-8.87, -24.8, 32) + 0.05 * np.cos(np.arange(32) * 2.3),  # lower block: ~1/2 degree apart
+]), 3))
+"""64 uneven beam elevations (degrees) laid out like an HDL-64E's two blocks, with a per-laser
+offset as a unit's own calibration has: ``omnire synth --lidar-elevations-deg`` casts the
+synthetic sweeps with them (tests/test_kitti_reader.py)."""
 TYPE_OF_KIND = {"car": "Car", "pedestrian": "Pedestrian", "cyclist": "Cyclist"}
 GRAVITY = 9.80665
 

@@ -5,6 +5,7 @@ checked independently (Mercator poses, label boxes), stereo geometry, errors, an
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -15,7 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from omnire.api import ConfigError, interpolate_track
+from omnire.api import ConfigError, interpolate_track, range_image, spherical
 from omnire_kitti import (
     KittiConfig,
     KittiDataError,
@@ -25,9 +26,12 @@ from omnire_kitti import (
     oxts_poses,
     read_calib,
 )
-from omnire_kitti.writer import CAMERA_T, write_kitti
+from omnire_kitti.writer import CAMERA_T, HDL64E_LIKE_ELEVATIONS_DEG, VELODYNE_AXES, write_kitti
 
 FRAMES = 10
+AZIMUTH_STEP = 0.5
+"""Azimuth step (degrees) of the synthetic sweeps (not twice the Velodyne's 0.4 degree
+mounting yaw, so each beam's firing azimuths sit clear of a column boundary)."""
 
 
 def parse(data: Path, **kw):
@@ -51,9 +55,11 @@ def synth(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("kitti")
     proc = root / "processed"
-    # Waymo style: 14-column LiDAR with intensity on Waymo's unbounded scale, per-camera extrinsics.
+    # Waymo style: 14-column LiDAR with intensity on Waymo's unbounded scale, per-camera extrinsics;
+    # the sweeps cast at an HDL-64E's 64 uneven elevations.
     generate(proc, "urban", SynthOptions(frames=FRAMES, width=64, height=40, num_cameras=1, style="waymo",
-                                         lidar_beams=16, lidar_azimuth_step_deg=0.8, write_depth=False))
+                                         lidar_elevations_deg=HDL64E_LIKE_ELEVATIONS_DEG,
+                                         lidar_azimuth_step_deg=AZIMUTH_STEP, write_depth=False))
     out = root / "kitti"
     out.mkdir()
     summary = write_kitti(proc, out)
@@ -174,7 +180,86 @@ def test_lidar_round_trip(synth):
         np.testing.assert_allclose(s.lidar.intensity[f], ref.lidar.intensity[f], atol=1e-6)
         np.testing.assert_allclose(s.lidar.sensor_to_world[f][:3, 3], s.lidar.origins[f])
         assert s.lidar.sensor_to_world[f][:3, 0] @ s.ego_poses[f][:3, 0] > 0.99  # Velodyne x = forward
-    assert s.lidar.times is None and s.lidar.beams is None
+    assert s.lidar.times is None
+
+
+def _cast_beam(elevation_deg: np.ndarray) -> np.ndarray:
+    """(N,) Velodyne-frame elevations of synthetic returns -> (N,) index of the cast elevation
+    (HDL64E_LIKE_ELEVATIONS_DEG) each lies on (exact ray casts stored as float32: checked
+    within 0.01 degrees, far below the 0.27 degree smallest spacing)."""
+    truth = np.array(HDL64E_LIKE_ELEVATIONS_DEG)
+    beam = np.abs(elevation_deg[:, None] - truth[None]).argmin(axis=1)
+    assert np.abs(elevation_deg - truth[beam]).max() < 0.01
+    return beam
+
+
+def test_hdl64e_beams_measured_from_sweeps(synth):
+    """The 64 uneven elevations, each return's beam and the azimuth step come back from the
+    sweeps alone (the files hold x y z reflectance only)."""
+    lidar = synth.scene.lidar
+    model = lidar.beam_model
+    assert model is not None and model.num_beams == 64 and model.max_range == 120.0
+    np.testing.assert_allclose(model.elevations_deg, HDL64E_LIKE_ELEVATIONS_DEG, atol=0.05)  # top to bottom
+    assert model.azimuth_resolution_deg == pytest.approx(AZIMUTH_STEP, abs=1e-9)
+    on_beam = total = 0
+    for f in lidar.available_frames():
+        rows = np.fromfile(synth.split / "velodyne" / "0000" / f"{f:06d}.bin", dtype="<f4").reshape(-1, 4)
+        true_beam = _cast_beam(spherical(rows[:, :3].astype(np.float64))[2])
+        assert lidar.beams[f].dtype == np.int16 and lidar.beams[f].shape == true_beam.shape
+        on_beam += int((lidar.beams[f] == true_beam).sum())
+        total += len(true_beam)
+    assert on_beam / total >= 0.99
+
+
+def test_missing_returns_recovered_on_beam_grid(synth):
+    """On the measured beam grid every return has a cell of its own, on its cast beam's row
+    and its cast azimuth's column (up to one shift per row: column 0 is a beam's first
+    firing), so the empty cells are exactly the rays that returned nothing."""
+    lidar = synth.scene.lidar
+    model = lidar.beam_model
+    A = model.num_azimuths
+    yaw = np.rad2deg(np.arctan2(VELODYNE_AXES[1, 0], VELODYNE_AXES[0, 0]))  # cast azimuth = Velodyne's + yaw
+    for f in lidar.available_frames():
+        M = lidar.sensor_to_world[f]
+        r, az, el = spherical((lidar.points[f].astype(np.float64) - M[:3, 3]) @ M[:3, :3])
+        image = range_image(r, az, lidar.beams[f], model)
+        rows, cols = np.nonzero(image.returned)
+        idx = image.point[rows, cols]
+        assert image.collisions == 0 and len(idx) == len(r)
+        assert (_cast_beam(el)[idx] == rows).all()
+        shift = (np.round(((az[idx] + yaw) % 360.0) / AZIMUTH_STEP).astype(np.int64) - cols) % A
+        assert all(len(np.unique(shift[rows == b])) == 1 for b in np.unique(rows))
+        np.testing.assert_allclose(image.range[rows, cols], r[idx], rtol=1e-6)
+        assert (~image.returned).sum() == 64 * A - len(r) > 0  # the missing returns (sky, range, grazing)
+
+
+@pytest.mark.parametrize("damage, reason", [
+    ("continuous", "deg of their beam's elevation|not one of 64 lasers"),
+    ("half_the_lasers", r"found \d+ elevation peaks, expected 64"),
+])
+def test_untrusted_beams_warn_once(synth, tmp_path, damage, reason):
+    """Sweeps whose elevations are not 64 distinct beams load without beams, with one
+    warning naming the folder and the reason; --no-estimate-beams skips the measurement."""
+    root = copy_split(synth, tmp_path)
+    rng = np.random.default_rng(0)
+    for path in sorted((root / "training" / "velodyne" / "0000").glob("*.bin")):
+        rows = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+        if damage == "continuous":  # elevations spread over +-3 degrees of their beams
+            rows[:, 2] += rng.uniform(-0.05, 0.05, len(rows)) * np.linalg.norm(rows[:, :2], axis=1)
+        else:  # a 32-laser sensor: every other beam's returns removed
+            rows = rows[_cast_beam(spherical(rows[:, :3].astype(np.float64))[2]) % 2 == 0]
+        path.write_bytes(rows.astype("<f4").tobytes())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        s = parse(root)
+    notes = [str(w.message) for w in caught if "get no beams" in str(w.message)]
+    assert len(notes) == 1, notes
+    assert re.search(r"velodyne/0000: the sweeps get no beams: .*(" + reason + ")", notes[0]), notes[0]
+    assert s.lidar.beams is None and s.lidar.beam_model is None and s.lidar.points[0] is not None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        off = parse(root, estimate_beams=False)
+    assert not [w for w in caught if "beams" in str(w.message)] and off.lidar.beams is None
 
 
 def test_boxes_round_trip(synth):

@@ -99,6 +99,8 @@ class SynthOptions:
     """LiDAR beams, evenly spread over the elevation range."""
     lidar_elevation_deg: tuple[float, float] = (-25.0, 10.0)
     """LiDAR beam elevation range (degrees)."""
+    lidar_elevations_deg: tuple[float, ...] = ()
+    """LiDAR beam elevations (degrees), one per beam, in place of --lidar-beams evenly spread over --lidar-elevation-deg (an uneven layout such as a real sensor's)."""
     lidar_azimuth_step_deg: float = 0.4
     """LiDAR azimuth resolution (degrees)."""
     lidar_max_range: float = 120.0
@@ -238,7 +240,8 @@ def _generate(out: str | Path, preset: str, opts: SynthOptions, progress, t_star
 
     actor_cat = np.array(["static"] + [CATEGORY[a.kind] for a in actors])
     lidar_spec = LidarSpec(
-        BeamModel(np.linspace(*opts.lidar_elevation_deg, opts.lidar_beams), opts.lidar_azimuth_step_deg,
+        BeamModel(np.array(opts.lidar_elevations_deg, dtype=np.float64) if opts.lidar_elevations_deg
+                  else np.linspace(*opts.lidar_elevation_deg, opts.lidar_beams), opts.lidar_azimuth_step_deg,
                   opts.lidar_max_range, opts.lidar_min_range, "synthetic"),
         refl_np, opts.lidar_grazing_drop_deg)
     lidar_counts = []
