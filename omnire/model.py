@@ -22,6 +22,7 @@ from omnire.exposure import ExposureCompensation
 from omnire.gaussians import Gaussians
 from omnire.lidarmodel import LidarRender, activate, decode, lidar_features_for
 from omnire.lidarprojection import may_reach
+from omnire.nodes.actors import observed_in_training
 from omnire.nodes.base import EnvironmentNode, Node, NodeContext, NodeOutput
 from omnire.rasterization import LidarSettings, Rasterizer, RasterSettings, Splats
 from omnire.strategy import NodeSlice
@@ -80,11 +81,15 @@ def scene_radius(scene: SceneData) -> float:
     return float(max(1.0, 1.1 * np.linalg.norm(centers - centers.mean(0), axis=1).max()))
 
 
-def assign_tracks(scene: SceneData, node_specs: dict[str, Any]) -> dict[str, list]:
-    """Map each track to the enabled node type that takes its category (highest priority;
-    ``accepts`` may refuse). Tracks no enabled node takes stay in the background."""
+def assign_tracks(scene: SceneData, node_specs: dict[str, Any], lidar_learning: bool = False) -> dict[str, list]:
+    """Map each track that training observes (:func:`~omnire.nodes.actors.observed_in_training`:
+    a camera sees it, or the LiDAR does when ``lidar_learning``) to the enabled node type that
+    takes its category (highest priority; ``accepts`` may refuse). Other tracks stay in the
+    background."""
     assigned: dict[str, list] = {name: [] for name in node_specs}
     for track in scene.tracks:
+        if not observed_in_training(track, scene, lidar_learning):
+            continue
         best = None
         for name, spec in node_specs.items():
             if track.category not in spec.categories:
@@ -145,7 +150,7 @@ class SceneModel(nn.Module):
         self.capabilities = frozenset(capabilities)
         self.device = device
         if assignment is None:
-            assigned = assign_tracks(scene, specs)
+            assigned = assign_tracks(scene, specs, lidar_learning=method.lidar.enabled and scene.lidar is not None)
         else:
             by_id = {t.track_id: t for t in scene.tracks}
             missing = sorted({i for ids in assignment.values() for i in ids} - set(by_id))

@@ -115,7 +115,8 @@ class NodeTypeSpec(Spec):
     ``categories`` are the actor categories the node type can model (empty for scene-level
     nodes such as background or sky). ``priority`` breaks ties when several enabled node
     types accept one actor (higher wins). ``accepts(track, scene)`` is a pure predicate that
-    may refuse an actor (e.g. the SMPL node refuses pedestrians without pose sequences).
+    may refuse an actor (e.g. the SMPL node refuses pedestrians without pose sequences); it is
+    asked only about actors training observes (``omnire.model.assign_tracks``).
     ``prepare(scene, plugins, config)`` runs once per scene, before any track is assigned,
     for the node types a method enables, with the node's config (e.g. the SMPL node type
     fills ``scene.human_poses`` with the registered pose estimators); it may add to the

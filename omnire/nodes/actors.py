@@ -473,6 +473,32 @@ def visible_in_cameras(track: ActorTrack, scene: SceneData, frames: Optional[np.
     return False
 
 
+def seen_by_lidar(track: ActorTrack, scene: SceneData, frames: Optional[np.ndarray] = None,
+                  min_returns: int = 10) -> bool:
+    """True when some sweep of ``frames`` (default: training frames) has at least
+    ``min_returns`` LiDAR returns inside the track's box: a 360-degree sensor measures actors
+    that no camera sees (behind or beside the car)."""
+    if scene.lidar is None:
+        return False
+    frames = scene.train_frames if frames is None else frames
+    for f in frames:
+        f = int(f)
+        points = scene.lidar.points[f]
+        if not track.present[f] or points is None:
+            continue
+        if int(points_in_box(points, track.poses[f], track.size).sum()) >= min_returns:
+            return True
+    return False
+
+
+def observed_in_training(track: ActorTrack, scene: SceneData, lidar_learning: bool) -> bool:
+    """Whether training sees the actor at all: a camera does, or, when LiDAR is learned as a
+    sensor (``--method.lidar.enabled``), the LiDAR does. Actors training never sees stay in
+    the background (no node, no cost); a LiDAR-only actor there would be static Gaussians
+    where the sweeps saw it move."""
+    return visible_in_cameras(track, scene) or (lidar_learning and seen_by_lidar(track, scene))
+
+
 def colour_box_points(scene: SceneData, images, track: ActorTrack, local: np.ndarray, src: np.ndarray) -> np.ndarray:
     """Colours (N,3) of box-local points, each projected into the images of the frame it
     came from (src (N,); -1 = use every frame the track is present in)."""

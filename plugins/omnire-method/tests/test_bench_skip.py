@@ -34,6 +34,8 @@ def test_bench_skip_builds_no_human_machinery_and_adds_absent_actors(tmp_path):
     off, on = result["lidar"][:2]  # LiDAR on for a scene without LiDAR: not one more parameter
     assert (off["lidar"], on["lidar"]) == (False, True) and off["scene"] == on["scene"] == "scene without LiDAR"
     assert on["parameters"] == off["parameters"] and on["gaussians"] == off["gaussians"]
-    if len(result["lidar"]) == 4:  # the rasterizer renders LiDAR: two features per Gaussian
-        off, on = result["lidar"][2:]
-        assert on["parameters"] == off["parameters"] + 2 * off["gaussians"] and on["gaussians"] == off["gaussians"]
+    assert on["actors"] == off["actors"]
+    if len(result["lidar"]) == 4:  # the rasterizer renders LiDAR: two features per Gaussian, and a node
+        off, on = result["lidar"][2:]  # for each actor only the LiDAR sees (the demo cut has some)
+        assert on["actors"] > off["actors"] and on["gaussians"] > off["gaussians"]
+        assert on["parameters"] > off["parameters"] + 2 * on["gaussians"]

@@ -1,9 +1,9 @@
-from omnire.api import MethodSpec, NodeTypeSpec, hookimpl, usable_track, visible_in_cameras
+from omnire.api import MethodSpec, NodeTypeSpec, hookimpl, usable_track
 
 
 def accepts(track, scene) -> bool:
-    """Vehicles with a usable box that some camera sees."""
-    return usable_track(track) and visible_in_cameras(track, scene)
+    """Vehicles with a usable box (the core keeps actors training never sees in the background)."""
+    return usable_track(track)
 
 
 @hookimpl

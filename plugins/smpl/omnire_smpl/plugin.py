@@ -10,15 +10,15 @@ poses each track from its LiDAR points and keypoints with temporal and gait prio
 fused sequence per track, with a per-frame confidence); pedestrians nothing observed start
 from a neutral standing pose. No estimator is built (nor its package imported) when every
 pedestrian already has a sequence or the scene has none. ``accepts`` then takes every
-visible pedestrian with a usable box and a pose sequence (priority 20, above the deformable
-node). Each pedestrian's path (sources, observed frames, confidence) is written to the
+pedestrian training observes (a camera, or the LiDAR when it is learned: the core's rule)
+with a usable box and a pose sequence (priority 20, above the deformable node). Each pedestrian's path (sources, observed frames, confidence) is written to the
 run's log with a summary line; the node prints a one-line summary on the console.
 """
 from __future__ import annotations
 
 import logging
 
-from omnire.api import NodeTypeSpec, hookimpl, usable_track, visible_in_cameras
+from omnire.api import NodeTypeSpec, hookimpl, usable_track
 
 log = logging.getLogger("omnire.nodes.smpl")
 
@@ -47,8 +47,9 @@ def prepare_scene(scene, plugins, config=None) -> None:
 
 
 def accepts(track, scene) -> bool:
-    """Pedestrians a camera sees, with a usable box and a pose sequence."""
-    return track.track_id in scene.human_poses and usable_track(track) and visible_in_cameras(track, scene)
+    """Pedestrians with a usable box and a pose sequence (the core keeps actors training never
+    sees in the background)."""
+    return track.track_id in scene.human_poses and usable_track(track)
 
 
 @hookimpl

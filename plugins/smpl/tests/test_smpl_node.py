@@ -12,6 +12,7 @@ from omnire_body import lbs, load_template
 from omnire_body import forward_kinematics as numpy_forward_kinematics
 from omnire.data.images import ImageCache
 from omnire.data.scene import ActorTrack, HumanPoseSequence
+from omnire.api import observed_in_training
 from omnire_body.rest import BODY_TO_BOX
 from omnire.io.safe_pickle import UnsafePickleError
 from omnire.method import MethodConfig
@@ -236,7 +237,8 @@ def test_prepare_fills_neutral_poses_and_accepts_is_pure(tmp_path):
     assert not accepts(track, scene) and scene.human_poses == {}  # a predicate: prepares nothing
     prepare_scene(scene, load_plugins(disabled={"pose_mediapipe", "omnire-pose-mediapipe"}))
     assert accepts(track, scene)
-    assert not accepts(hidden, scene)  # no camera sees it
+    # no camera sees it: the core keeps it in the background (accepts leaves that to the core)
+    assert accepts(hidden, scene) and not observed_in_training(hidden, scene, lidar_learning=False)
     seq = scene.human_poses[track.track_id]
     assert seq.source == "neutral" and not seq.valid.any()
     # Facing the heading: the body's forward axis (+z) is the box x axis.
