@@ -300,7 +300,6 @@ class NuPlanDataparser(Dataparser):
         ring_count = 0  # of the top LiDAR: its largest ring over every loaded blob + 1
         estimate: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # sweeps spread over the log, not thinned
         measured = set(np.linspace(0, len(frame_pcs) - 1, ESTIMATE_SWEEPS).round().astype(int).tolist())
-        origins = np.full((len(frame_pcs), 3), np.nan)
         sensor_to_world = np.full((len(frame_pcs), 4, 4), np.nan)
         missing = []
         lacking_ids: Optional[Path] = None
@@ -339,7 +338,6 @@ class NuPlanDataparser(Dataparser):
                     model_name = f"nuPlan top LiDAR ({listed})"
             M = world @ ego_frames[j] @ to_ego[lidar.token]  # (4, 4) LiDAR -> world
             points.append((xyz[keep] @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
-            origins[j] = M[:3, 3]
             sensor_to_world[j] = M
         if len(missing) == len(frame_pcs):
             raise NuPlanFileMissing(f"{missing[0]}: none of the {len(frame_pcs)} LiDAR blobs of the loaded frames exists "
@@ -356,7 +354,8 @@ class NuPlanDataparser(Dataparser):
             warnings.warn(f"{db.path}: the nuPlan sweeps carry no beams (no ray-drop targets): {why}", stacklevel=2)
         else:
             beams = [None if i is None else beams_of(*i) for i in ids]
-        return LidarSweeps(points=points, origins=origins, intensity=intensity if carried else None,
+        return LidarSweeps(points=points, origins=sensor_to_world[:, :3, 3].copy(),
+                           intensity=intensity if carried else None,
                            sensor_to_world=sensor_to_world, beams=beams, beam_model=model)
 
     def _tracks(self, db: LogDatabase, frame_pcs: list[Row], frame_us: np.ndarray,

@@ -6,7 +6,8 @@ Facts used (sources in dataparsers/nuplan/README.md, "LiDAR beams"):
   devkit's ``to_pcd_bin2`` writes these six), the returns of every LiDAR in the frame of
   the log's ``lidar`` row.
 - ``lidar_info`` says which LiDAR measured the return: 0 top, 1 right A-pillar, 2 left
-  A-pillar, 3 back, 4 front (the devkit's ``prepare_pointcloud_points``); ``ring`` is the
+  A-pillar, 3 back, 4 front (the devkit's ``prepare_pointcloud_points``; a later reader of
+  the released clouds, py123d, has 1 and 2 the other way round; only 0 matters here); ``ring`` is the
   laser of the return within its own LiDAR (the devkit keeps some rings 0-39 of the A-pillar
   LiDARs).
 - Nothing public gives the LiDARs' models or laser angles, and the records carry no time.
@@ -29,9 +30,6 @@ from omnire_nuplan.database import NuPlanDataError
 
 TOP = 0
 """``lidar_info`` of the top LiDAR, the sweep's sensor."""
-LIDAR_NAMES = {0: "top", 1: "right A-pillar", 2: "left A-pillar", 3: "back", 4: "front"}
-"""``lidar_info`` -> LiDAR, as the devkit documents it (a later reader of the released
-clouds, py123d, reports 1 and 2 the other way round; only 0 matters here)."""
 ESTIMATE_SWEEPS = 4
 """The beam model is measured on this many loaded sweeps, spread evenly over the log (a ring
 aimed at open sky can go without returns for a while); the ring count is every loaded
@@ -93,7 +91,7 @@ def top_beam_model(sweeps: list[tuple[np.ndarray, np.ndarray, np.ndarray]], ring
         return None, f"no return of the top LiDAR (lidar_info {TOP}) in {where}"
     rings = np.concatenate([r for _, r in top]).astype(np.int64)
     rng, _, el = spherical(np.concatenate([p for p, _ in top]))
-    B = max(int(ring_count), int(rings.max()) + 1)
+    B = int(ring_count)
     far = rng > MIN_RANGE_M
     elevations, counts = median_per_beam(el[far], rings[far], B)
     few = np.flatnonzero(counts < MIN_RING_RETURNS)
