@@ -21,10 +21,10 @@ statistics average over. A slow machine on a time budget, whose steps each stand
 schedule steps, refines as often per view as a fast one, from statistics as good, instead
 of growing from a handful of views what it has too few steps left to optimise.
 
-Growth stops at ``refine_stop`` or at half the schedule, whichever is first: the reference
-stops at 15k of 30k steps, and shorter CPU runs keep that proportion (a 3000-step run grows
-until 1500 and never resets opacity in its last steps; a time budget grows for half its
-seconds).
+Growth stops at ``refine_stop`` or at ``grow_fraction`` (half) of the schedule, whichever is
+first: the reference stops at 15k of 30k steps, and shorter CPU runs keep that proportion
+(a 3000-step run grows until 1500 and never resets opacity in its last steps; a time budget
+grows for half its seconds).
 
 State is explicit (tensors per node) and saved in checkpoints.
 """
@@ -36,6 +36,7 @@ from typing import Optional
 
 import torch
 
+from omnire.errors import ConfigError
 from omnire.geometry import quat_to_rotmat
 from omnire.nodes.base import Node
 from omnire.optim import Optimizers
@@ -56,6 +57,8 @@ class DensifyConfig:
     """Training steps between refinements (the views the statistics average over)."""
     refine_stop: int = 15_000
     """No growth after this step."""
+    grow_fraction: float = 0.5
+    """No growth after this fraction of the schedule either (the reference: 15k of 30k)."""
     reset_every: int = 3000
     """Opacity reset period (0 = never)."""
     prune_opacity: float = 0.005
@@ -64,6 +67,10 @@ class DensifyConfig:
     """x scene radius: prune larger Gaussians (after the first opacity reset)."""
     max_gaussians: int = 400_000
     """Budget per node: growth stops adding above it (the largest gradients win)."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.grow_fraction <= 1:
+            raise ConfigError(f"densify.grow_fraction: {self.grow_fraction}, expected a fraction of the schedule in (0, 1]")
 
 
 @dataclasses.dataclass
@@ -84,7 +91,8 @@ class AbsGradStrategy:
     def __init__(self, config: DensifyConfig, scene_radius: float, max_steps: Optional[int] = None) -> None:
         self.config = config
         self.scene_radius = scene_radius
-        self.refine_stop = config.refine_stop if max_steps is None else min(config.refine_stop, max_steps // 2)
+        self.refine_stop = (config.refine_stop if max_steps is None
+                            else min(config.refine_stop, int(max_steps * config.grow_fraction)))
         self.state: dict[str, dict[str, torch.Tensor]] = {}
 
     def _node_state(self, name: str, node: Node) -> dict[str, torch.Tensor]:

@@ -2,8 +2,10 @@
 its Adam moments consistent."""
 import math
 
+import pytest
 import torch
 
+from omnire.errors import ConfigError
 from omnire.nodes.base import Node, init_gaussian_params
 from omnire.optim import Optimizers, exponential_lr
 from omnire.strategy import AbsGradStrategy, DensifyConfig, NodeSlice
@@ -123,6 +125,15 @@ def test_no_growth_or_reset_in_the_second_half_of_a_short_run():
     assert torch.equal(node.gaussian_params["opacities"], before)
     strat.step({"toy": node}, opt, 40)
     assert torch.sigmoid(node.gaussian_params["opacities"]).max() <= 0.0100001
+
+
+def test_growth_stops_at_its_fraction_of_the_schedule():
+    config = DensifyConfig(grow_fraction=0.8, refine_stop=15_000)
+    assert AbsGradStrategy(config, 1.0, max_steps=3000).refine_stop == 2400
+    assert AbsGradStrategy(DensifyConfig(), 1.0, max_steps=3001).refine_stop == 1500
+    assert AbsGradStrategy(config, 1.0, max_steps=None).refine_stop == 15_000
+    with pytest.raises(ConfigError, match="grow_fraction"):
+        DensifyConfig(grow_fraction=1.5)
 
 
 def test_no_size_pruning_when_no_opacity_reset_happened():
