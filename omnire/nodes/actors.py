@@ -65,47 +65,21 @@ def usable_track(track: ActorTrack) -> bool:
     return True
 
 
-def held_pose(track: ActorTrack) -> np.ndarray:
-    """The one box-to-world pose (4, 4) a stationary track is held at: its present frame
-    whose box centre is nearest the median centre (an annotated pose, so no rotation
-    averaging; annotations of a parked car jitter from frame to frame in most datasets)."""
-    poses = track.poses[track.present]
-    centres = poses[:, :3, 3]
-    return poses[int(np.argmin(np.linalg.norm(centres - np.median(centres, axis=0), axis=1)))]
-
-
 class ActorPoses(nn.Module):
     """Per-instance, per-frame box-to-world poses with optional learnable refinement.
 
-    Buffers: base_R (I,F,3,3), base_t (I,F,3), present (I,F) bool, delta_slot (I,F) long.
-    Parameters (when refining): delta_rot (I,F,3) axis-angle applied in the box frame,
-    delta_t (I,F,3) in the world frame: pose at frame f = (R_base exp(delta_rot[s]),
-    t_base + delta_t[s]) with s = delta_slot[f].
-
-    A stationary track (``ActorTrack.stationary``) is one object that does not move: it is
-    held at one pose (:func:`held_pose`) and all its frames share one refinement slot (its
-    first present frame's), learned from every frame it is seen in. With a slot per frame a
-    parked car's refinement follows each training frame's noise (on the PandaSet demo cut,
-    2-10 cm RMS from frame to frame), and a held-out frame gets the average of its
-    neighbours' noise. Moving tracks keep a slot per frame.
+    Buffers: base_R (I,F,3,3), base_t (I,F,3), present (I,F) bool. Parameters (when
+    refining): delta_rot (I,F,3) axis-angle applied in the box frame, delta_t (I,F,3) in
+    the world frame: pose = (R_base exp(delta_rot), t_base + delta_t).
     """
 
     def __init__(self, tracks: list[ActorTrack], train_frames: np.ndarray, refine: bool, device) -> None:
         super().__init__()
         I = len(tracks)
         F = tracks[0].poses.shape[0] if tracks else 0
-        poses = np.stack([np.where(t.present[:, None, None], held_pose(t), t.poses) if t.stationary else t.poses
-                          for t in tracks]) if tracks else np.zeros((0, F, 4, 4))
+        poses = np.stack([t.poses for t in tracks]) if tracks else np.zeros((0, F, 4, 4))
         present = np.stack([t.present for t in tracks]) if tracks else np.zeros((0, F), bool)
         poses = np.where(present[..., None, None], poses, np.eye(4))
-        slot = np.tile(np.arange(F), (I, 1))
-        for i, t in enumerate(tracks):
-            if t.stationary:
-                slot[i] = np.flatnonzero(t.present)[0]
-        # Persistent, so a run keeps the slots it was trained with (runs from before slots
-        # existed load with a slot per frame: _slots_of_older_runs).
-        self.register_buffer("delta_slot", torch.as_tensor(slot, dtype=torch.long, device=device))
-        self._register_load_state_dict_pre_hook(self._slots_of_older_runs)
         self.register_buffer("base_R", torch.as_tensor(poses[..., :3, :3], dtype=torch.float32, device=device))
         self.register_buffer("base_t", torch.as_tensor(poses[..., :3, 3], dtype=torch.float32, device=device))
         self.register_buffer("present", torch.as_tensor(present, device=device))
@@ -151,20 +125,11 @@ class ActorPoses(nn.Module):
         R, t = self.base_R[ids, frame], self.base_t[ids, frame]
         if self.refine:
             p, n, w = self.interp_prev[frame], self.interp_next[frame], self.interp_w[frame]
-            sp, sn = self.delta_slot[ids, p], self.delta_slot[ids, n]
-            d_rot = (1 - w) * self.delta_rot[ids, sp] + w * self.delta_rot[ids, sn]
-            d_t = (1 - w) * self.delta_t[ids, sp] + w * self.delta_t[ids, sn]
+            d_rot = (1 - w) * self.delta_rot[ids, p] + w * self.delta_rot[ids, n]
+            d_t = (1 - w) * self.delta_t[ids, p] + w * self.delta_t[ids, n]
             R = R @ axis_angle_to_rotmat(d_rot)
             t = t + d_t
         return ids, R, t
-
-    def _slots_of_older_runs(self, state_dict: dict, prefix: str, *args) -> None:
-        """A checkpoint written before ``delta_slot`` existed refined every frame on its own
-        (stationary tracks included): load it with a slot per frame, as it was trained."""
-        key = prefix + "delta_slot"
-        if key not in state_dict and prefix + "present" in state_dict:
-            I, F = state_dict[prefix + "present"].shape
-            state_dict[key] = torch.arange(F, device=self.delta_slot.device).expand(I, F).clone()
 
     def param_groups(self, lr_rot: float, lr_trans: float) -> list[ParamGroup]:
         if not self.refine or self.num_instances == 0:
