@@ -24,11 +24,15 @@ from omnire_viewer.headless import HeadlessChromium, find_chromium
 from omnire_viewer.scene import ViewerScene
 
 FRAME = 2
+# Returns the 3D view's size on the page (CSS pixels), which is what a screenshot shows: its
+# drawing buffer shrinks when viser's adaptive resolution finds frames slow (a loaded machine:
+# 315x210 seen for a 360x240 window) and is scaled up to the same place.
 SHOW_ONLY_CANVAS = """(() => {
   const canvases = [...document.querySelectorAll('canvas')].sort((a, b) => b.width * b.height - a.width * a.height);
   document.body.style.visibility = 'hidden';   // the control panel, notifications, logo ...
   canvases[0].style.visibility = 'visible';    // ... all but the 3D view
-  return [canvases[0].width, canvases[0].height];
+  const rect = canvases[0].getBoundingClientRect();
+  return [Math.round(rect.width), Math.round(rect.height)];
 })()"""
 
 
