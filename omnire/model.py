@@ -88,8 +88,6 @@ def assign_tracks(scene: SceneData, node_specs: dict[str, Any], lidar_learning: 
     background."""
     assigned: dict[str, list] = {name: [] for name in node_specs}
     for track in scene.tracks:
-        if not observed_in_training(track, scene, lidar_learning):
-            continue
         best = None
         for name, spec in node_specs.items():
             if track.category not in spec.categories:
@@ -98,7 +96,9 @@ def assign_tracks(scene: SceneData, node_specs: dict[str, Any], lidar_learning: 
                 continue
             if best is None or spec.priority > node_specs[best].priority:
                 best = name
-        if best is not None:
+        # Asked last: it projects the box into every training view (and counts returns in
+        # every sweep), work a track no enabled node takes (every track of 3dgs) need not do.
+        if best is not None and observed_in_training(track, scene, lidar_learning):
             assigned[best].append(track)
     return assigned
 

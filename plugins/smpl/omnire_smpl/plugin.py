@@ -11,8 +11,9 @@ fused sequence per track, with a per-frame confidence); pedestrians nothing obse
 from a neutral standing pose. No estimator is built (nor its package imported) when every
 pedestrian already has a sequence or the scene has none. ``accepts`` then takes every
 pedestrian training observes (a camera, or the LiDAR when it is learned: the core's rule)
-with a usable box and a pose sequence (priority 20, above the deformable node). Each pedestrian's path (sources, observed frames, confidence) is written to the
-run's log with a summary line; the node prints a one-line summary on the console.
+with a usable box and a pose sequence (priority 20, above the deformable node). Each
+pedestrian's path (sources, observed frames, confidence) is written to the run's log with a
+summary line; the node prints a one-line summary on the console.
 """
 from __future__ import annotations
 
