@@ -1,5 +1,6 @@
 # Set-up, demo and tests. Everything installs into $(VENV); nothing else is touched.
-#   make demo   create the venv, install torch + omnire + every plugin, train on the demo scene
+#   make demo   create the venv, install torch + omnire + every plugin (and compile the plugins'
+#               C++ extensions, a few minutes once per source version), train on the demo scene
 #   make test   same install, then the import contracts and the test suite (TEST_WORKERS processes)
 # Override TORCH_SPEC for another torch (e.g. TORCH_SPEC="torch==2.5.1"); the default is the
 # CPU build this project is developed against. It is also written to a pip constraint file
@@ -35,6 +36,7 @@ $(STAMP): pyproject.toml $(wildcard plugins/*/pyproject.toml dataparsers/*/pypro
 	$(BIN)/pip install --quiet --no-build-isolation -c $(VENV)/torch-constraint.txt \
 		-e ".[test,bench]" $(foreach d,$(PLUGIN_DIRS),-e $(d))
 	$(foreach f,$(NO_DEPS),$(BIN)/pip install --quiet --no-deps -c $(VENV)/torch-constraint.txt -r $(f);)
+	$(BIN)/omnire plugins --build
 	touch $(STAMP)
 
 install: $(STAMP)

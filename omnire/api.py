@@ -193,6 +193,7 @@ from omnire.registry import (
     DataparserSpec,
     LossSpec,
     MethodSpec,
+    NativeExtensionSpec,
     NodeTypeSpec,
     PoseEstimatorSpec,
     RasterizerSpec,

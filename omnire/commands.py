@@ -6,6 +6,7 @@ one line; anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -209,10 +210,40 @@ def render_main(argv: list[str], plugins) -> int:
     return 0
 
 
+@dataclasses.dataclass
+class PluginsArgs:
+    """List every registry entry and the distribution providing it."""
+
+    build: bool = False
+    """Instead of the registries, compile every registered native extension now (those the
+    cache already holds for these sources and this torch load at once) and list which are
+    available; ``make install`` runs this, so that nothing compiles inside a first run."""
+
+
+def build_native_extensions(plugins, console) -> None:
+    """Load (compiling when needed) every registered native extension; print a table of the
+    outcome: available with its load time, or unavailable with the reason (callers fall back
+    to torch, so an unavailable one is reported, not fatal)."""
+    table = Table(title="native extensions")
+    for col in ("name", "distribution", "status", "seconds"):
+        table.add_column(col)
+    registry = plugins.registries()["native_extensions"]
+    for name, spec in registry.items():
+        start = time.perf_counter()
+        module, reason = spec.load()
+        status = "available" if module is not None else f"[red]unavailable:[/] {reason}"
+        table.add_row(name, registry.provenance(name).distribution, status, f"{time.perf_counter() - start:.1f}")
+    console.print(table)
+
+
 def plugins_main(argv: list[str], plugins) -> int:
     from omnire.rasterization import summarize_paths
 
+    args = tyro.cli(PluginsArgs, args=argv, prog="omnire plugins")
     console = output_console()
+    if args.build:
+        build_native_extensions(plugins, console)
+        return 0
     for attr, registry in plugins.registries().items():
         table = Table(title=f"{attr.replace('_', ' ')}")
         rasterizers = attr == "rasterizers"  # and which path each optional capability takes

@@ -26,6 +26,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Optional, Sequence
 
+from omnire.io.atomic import atomic_write_bytes
 from omnire.io.cache import user_cache_dir
 
 log = logging.getLogger(__name__)
@@ -84,6 +85,23 @@ def _builders_take_turns(build_dir: Path):
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
+def _sources_in(build_dir: Path, sources: Sequence[Path]) -> list[Path]:
+    """Copies of ``sources`` in ``build_dir/sources``, compiled instead of the originals: the
+    build rules then name the same files from every checkout of the repository (ninja rebuilds
+    when a rule's source path changes, so a fresh clone or a second worktree would otherwise
+    recompile for minutes what the cache already holds). A copy is rewritten only when its
+    bytes differ (the build directory is keyed by the sources' hash, so only after a killed
+    copy): ninja also rebuilds when a source is newer than its object."""
+    copies = []
+    for source in sources:
+        copy = build_dir / "sources" / source.name
+        data = source.read_bytes()
+        if not copy.is_file() or copy.read_bytes() != data:
+            atomic_write_bytes(copy, data)
+        copies.append(copy)
+    return copies
+
+
 class NativeExtension:
     """One C++ extension: ``name`` (the cache directory's and module's prefix), its
     ``sources``, compiler and linker flags, and the CPU flags it is compiled for (a CPU
@@ -127,7 +145,7 @@ class NativeExtension:
         with _builders_take_turns(build_dir):
             return cpp_extension.load(
                 name=build_dir.name,
-                sources=[str(source) for source in self.sources],
+                sources=[str(source) for source in _sources_in(build_dir, self.sources)],
                 extra_cflags=list(self.cflags),
                 extra_ldflags=list(self.ldflags),
                 build_directory=str(build_dir),

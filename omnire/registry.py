@@ -226,6 +226,17 @@ class TrainObserverSpec(Spec):
 
 
 @dataclasses.dataclass(frozen=True)
+class NativeExtensionSpec(Spec):
+    """A C++ extension a plugin compiles at first use (an
+    :class:`omnire.native.NativeExtension`). ``load()`` returns ``(module, "")`` or
+    ``(None, reason)``, building it when the cache has no build for this source and torch;
+    ``omnire plugins --build`` calls it for every registered extension (``make install`` does,
+    so that nothing compiles inside the first training run or test)."""
+
+    load: Callable[[], tuple[Any, str]]
+
+
+@dataclasses.dataclass(frozen=True)
 class RegistryKind:
     """One kind of registry: the attribute of :class:`omnire.plugins.Plugins` holding it,
     what an entry is called in messages, the spec class and the hook that fills it."""
@@ -253,6 +264,8 @@ REGISTRY_KINDS: tuple[RegistryKind, ...] = (
                  "writers of a dataset's on-disk layout (``omnire synth --format``)"),
     RegistryKind("train_observers", "training observer", TrainObserverSpec, "omnire_register_train_observers",
                  "training observers (``--trainer.observers``), e.g. a live viewer"),
+    RegistryKind("native_extensions", "native extension", NativeExtensionSpec, "omnire_register_native_extensions",
+                 "C++ extensions compiled at first use (``omnire plugins --build`` compiles them ahead)"),
 )
 """Every registry kind, in the order ``omnire plugins`` lists them."""
 

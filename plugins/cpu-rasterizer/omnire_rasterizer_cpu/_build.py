@@ -33,6 +33,11 @@ def load_extension() -> tuple[Optional[ModuleType], str]:
     return EXTENSION.load()
 
 
+def load_lidar_extension() -> tuple[Optional[ModuleType], str]:
+    """Return ``(module, "")`` or ``(None, reason)`` for the LiDAR extension."""
+    return LIDAR_EXTENSION.load()
+
+
 def extension() -> ModuleType:
     """The loaded extension; a RuntimeError saying why when it is unavailable."""
     return EXTENSION.module()

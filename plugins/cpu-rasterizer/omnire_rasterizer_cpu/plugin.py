@@ -1,5 +1,6 @@
-"""Entry point (``omnire`` group, name ``cpu``): registers the native CPU rasterizer."""
-from omnire.api import RasterizerSpec, hookimpl
+"""Entry point (``omnire`` group, name ``cpu``): registers the native CPU rasterizer and its two
+C++ extensions."""
+from omnire.api import NativeExtensionSpec, RasterizerSpec, hookimpl, lazy
 
 from omnire_rasterizer_cpu import available
 
@@ -20,3 +21,11 @@ def omnire_register_rasterizers(registry) -> None:
             capabilities=frozenset({"inference", "fused_training", "ssim", "lidar"}),
         )
     )
+
+
+@hookimpl
+def omnire_register_native_extensions(registry) -> None:
+    registry.register(NativeExtensionSpec("omnire_raster_cpu", "the cpu rasterizer's camera kernels and SSIM",
+                                          lazy("omnire_rasterizer_cpu._build:load_extension")))
+    registry.register(NativeExtensionSpec("omnire_lidar_cpu", "the cpu rasterizer's LiDAR compositing",
+                                          lazy("omnire_rasterizer_cpu._build:load_lidar_extension")))

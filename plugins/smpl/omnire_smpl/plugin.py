@@ -1,4 +1,4 @@
-"""Registers the ``smpl`` node type.
+"""Registers the ``smpl`` node type and its native skinning kernel.
 
 Scene preparation (the node type's ``prepare``, run once per scene before tracks are
 assigned, only when a method enables this node type): the human pose pipeline of
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 
-from omnire.api import NodeTypeSpec, hookimpl, usable_track
+from omnire.api import NativeExtensionSpec, NodeTypeSpec, hookimpl, lazy, usable_track
 
 log = logging.getLogger("omnire.nodes.smpl")
 
@@ -60,3 +60,9 @@ def omnire_register_node_types(registry) -> None:
     registry.register(NodeTypeSpec(
         "smpl", "pedestrians as Gaussians skinned by a body template (SMPL skeleton), per-frame body-pose refinement",
         SMPLConfig, categories=frozenset({"human"}), priority=20, accepts=accepts, prepare=prepare_scene))
+
+
+@hookimpl
+def omnire_register_native_extensions(registry) -> None:
+    registry.register(NativeExtensionSpec("omnire_smpl_skin", "SMPL skinning of Gaussians (forward and backward)",
+                                          lazy("omnire_smpl.skinning:load_extension")))

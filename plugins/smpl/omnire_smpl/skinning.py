@@ -50,8 +50,13 @@ class _SkinFn(torch.autograd.Function):
         return gA, None, None, None, gx, gq, None
 
 
+def load_extension():
+    """``(module, "")`` or ``(None, reason)``; builds at most once per process."""
+    return EXTENSION.load()
+
+
 def native_skinning_available() -> tuple[bool, str]:
-    mod, reason = EXTENSION.load()
+    mod, reason = load_extension()
     return mod is not None, reason
 
 
