@@ -67,10 +67,16 @@ class DensifyConfig:
     """x scene radius: prune larger Gaussians (after the first opacity reset)."""
     max_gaussians: int = 400_000
     """Budget per node: growth stops adding above it (the largest gradients win)."""
+    keep_after_growth: float = 1.0
+    """When growth stops, keep this fraction of each node's Gaussians (of each actor's, for
+    actor nodes): those with the largest blending weight summed over the training views
+    (``omnire.contribution``); the remaining steps are then shorter. 1 = keep all."""
 
     def __post_init__(self) -> None:
         if not 0 < self.grow_fraction <= 1:
             raise ConfigError(f"densify.grow_fraction: {self.grow_fraction}, expected a fraction of the schedule in (0, 1]")
+        if not 0 < self.keep_after_growth <= 1:
+            raise ConfigError(f"densify.keep_after_growth: {self.keep_after_growth}, expected a fraction in (0, 1]")
 
 
 @dataclasses.dataclass

@@ -41,6 +41,7 @@ from omnire.model import RenderResult
 from omnire.nodes.base import NodeOutput
 from omnire.shbands import fit_sh_bands
 from omnire.observations import Observations
+from omnire.contribution import node_contributions, prune_nodes
 from omnire.resolution import downscale_factor
 from omnire.optim import Optimizers
 from omnire.rundir import RunDirectory, RunDirectoryError, RunInfo, find_checkpoint, step_of
@@ -303,6 +304,21 @@ class Trainer:
         self.strategy.rows_changed(node_name, node, self.optimizers)
         return before, node.num_gaussians
 
+    def prune_after_growth(self) -> dict:
+        """When growth has stopped: keep ``densify.keep_after_growth`` of each node's Gaussians,
+        by their contribution to the training views (nothing when it is 1). Returns what the
+        run's ``densify_stop`` record keeps: the counts before and after and the seconds taken."""
+        fraction = self.config.method.densify.keep_after_growth
+        if fraction >= 1.0:
+            return {}
+        start = time.perf_counter()
+        counts = prune_nodes(self, node_contributions(self.recon, self.train_views), fraction)
+        seconds = time.perf_counter() - start
+        before, after = (sum(c[i] for c in counts.values()) for i in (0, 1))
+        log.info("growth stopped: kept %d of %d Gaussians by their contribution to %d training views (%.1f s)",
+                 after, before, len(self.train_views), seconds)
+        return {"pruned": {name: list(c) for name, c in counts.items()}, "prune_seconds": seconds}
+
     # ------------------------------------------------------------------ training
     def loss_context(self, view: View, result, factor: int = 1) -> LossContext:
         """What the losses compare ``result`` (rendered at 1 / ``factor`` resolution) with."""
@@ -425,7 +441,8 @@ class Trainer:
             now = s.schedule_step + 1
         self.strategy.step(self.model.gaussian_nodes(), self.optimizers, self.step, now, since=s.schedule_step)
         if self.densify_stop is None and s.schedule_step < self.strategy.refine_stop <= now:
-            self.densify_stop = {"step": self.step, "schedule_step": now, "train_seconds": seconds}
+            self.densify_stop = {"step": self.step, "schedule_step": now, "train_seconds": seconds,
+                                 **self.prune_after_growth()}
         if self.schedule.timed or now != self.step:
             self.recon.schedule_step = now
 

@@ -14,20 +14,23 @@ from omnire.trainer import TrainConfig, Trainer, TrainerConfig, TrainingError
 from scene_helpers import assert_same_state
 
 
-def small_method(reset_every: int = 0) -> MethodConfig:
+def small_method(reset_every: int = 0, keep_after_growth: float = 1.0) -> MethodConfig:
     return MethodConfig(
         nodes={"background": BackgroundConfig(voxel_size=0.5, num_far_points=200)},
-        densify=DensifyConfig(refine_start=10, refine_every=10, reset_every=reset_every, grad_threshold=2e-4),
+        densify=DensifyConfig(refine_start=10, refine_every=10, reset_every=reset_every, grad_threshold=2e-4,
+                              keep_after_growth=keep_after_growth),
         sh_degree_interval=15,
         rasterizer="torch",
     )
 
 
-def make_trainer(scene, tmp_path, steps=40, resume=None, name="run", checkpoint_every=20, reset_every=0):
+def make_trainer(scene, tmp_path, steps=40, resume=None, name="run", checkpoint_every=20, reset_every=0,
+                 keep_after_growth=1.0):
     plugins = load_plugins()
     tc = TrainerConfig(max_steps=steps, output_dir=tmp_path, run_name=name, checkpoint_every=checkpoint_every,
                        log_every=5, progress=False, resume=resume, eval_train_views=0)
-    return Trainer(TrainConfig("3dgs", "test", small_method(reset_every), None, tc), plugins, argv=[], scene=scene)
+    return Trainer(TrainConfig("3dgs", "test", small_method(reset_every, keep_after_growth), None, tc), plugins,
+                   argv=[], scene=scene)
 
 
 def test_training_reduces_loss_and_densifies(tiny_scene, tmp_path):
@@ -91,3 +94,28 @@ def test_keep_gaussian_rows_cuts_parameters_moments_and_statistics_together(tiny
         trainer.keep_gaussian_rows("background", torch.ones(3, dtype=torch.bool))
     with pytest.raises(ValueError, match="expected one of the Gaussian nodes"):
         trainer.keep_gaussian_rows("sky", keep)
+
+
+def test_pruning_when_growth_stops_keeps_the_fraction_asked_and_training_goes_on(tiny_scene, tmp_path):
+    """``densify.keep_after_growth``: once, at the step growth stops (half of a 40-step
+    schedule), each node keeps that fraction of its Gaussians (rounded up) and the run
+    records it; the pruned run trains on, checkpoints and resumes."""
+    trainer = make_trainer(tiny_scene, tmp_path, steps=40, checkpoint_every=10, keep_after_growth=0.4)
+    while trainer.step < 20:
+        trainer.train_step()
+    stop = trainer.densify_stop
+    assert stop is not None and stop["step"] == 20, stop
+    before, after = stop["pruned"]["background"]
+    assert after == -(-before * 4 // 10) == trainer.model.num_gaussians()
+    result = trainer.train()
+    assert trainer.step == 40 and result["reconstruction"]["psnr"] > 12
+    assert trainer.model.num_gaussians() <= after  # no growth afterwards, transparent ones still go
+    resumed = make_trainer(tiny_scene, tmp_path, steps=40, resume=trainer.run_dir, name="resumed",
+                           keep_after_growth=0.4)
+    assert resumed.densify_stop["pruned"] == stop["pruned"]
+    assert resumed.model.num_gaussians() == trainer.model.num_gaussians()
+
+
+def test_keep_after_growth_must_be_a_fraction():
+    with pytest.raises(Exception, match="keep_after_growth"):
+        DensifyConfig(keep_after_growth=0.0)

@@ -2,7 +2,7 @@
 
 The new run is made by the real :class:`~omnire.api.Trainer`, branched from the source
 checkpoint into a hidden sibling folder (``.<name>.partial``): evaluated, pruned node by node
-(:mod:`omnire_compact.prune`), optionally fine-tuned, checkpointed, evaluated again, and only
+(:func:`omnire.api.prune_nodes`), optionally fine-tuned, checkpointed, evaluated again, and only
 then renamed to ``--output``; a failure or Ctrl-C leaves no half-written run behind.
 """
 from __future__ import annotations
@@ -175,8 +175,7 @@ def compact(trainer: Trainer, args: CompactArgs, console) -> tuple[dict[str, dic
     Gaussian counts before and after pruning."""
     from rich.progress import Progress
 
-    from omnire_compact.contribution import node_contributions
-    from omnire_compact.prune import prune_nodes
+    from omnire.api import node_contributions, prune_nodes
 
     evaluations = {"source": trainer.evaluate(write=False)}
     views = trainer.train_views

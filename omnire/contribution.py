@@ -7,7 +7,10 @@ rgb(p) = sum_i w_i(p) c_i, so with a one-channel colour c = 1 for every Gaussian
 d(sum_p rgb(p)) / d c_i = sum_p w_i(p) exactly: one forward and backward pass of *any*
 rasterizer through autograd (:func:`view_weights`) gives every Gaussian's weight in that
 view, including the rasterizer's own cut-offs (alpha < 1/255, the transmittance floor).
-Tested against a per-pixel evaluation in float64 (plugins/compact/tests/test_contribution.py).
+Tested against a per-pixel evaluation in float64 (tests/test_contribution.py).
+
+Two users: ``omnire compact`` prunes a trained run with it, and training prunes once at the end
+of its growth phase when ``--method.densify.keep-after-growth`` is below 1 (:func:`prune_nodes`).
 """
 from __future__ import annotations
 
@@ -16,7 +19,8 @@ from typing import Callable, Optional
 
 import torch
 
-from omnire.api import Camera, RasterSettings, Splats
+from omnire.camera import Camera
+from omnire.rasterization import RasterSettings, Splats
 
 
 def view_weights(rasterizer, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -89,3 +93,20 @@ def keep_top(contribution: torch.Tensor, fraction: float, groups: Optional[torch
     rank = torch.arange(N, device=contribution.device) - starts
     keep[order[rank < quota]] = True
     return keep
+
+
+@torch.no_grad()
+def prune_nodes(trainer, contributions: dict[str, torch.Tensor], fraction: float) -> dict[str, tuple[int, int]]:
+    """Keep, in every Gaussian node of ``trainer`` (an :class:`omnire.trainer.Trainer`), the
+    ``fraction`` of its Gaussians with the largest ``contributions`` (per node, (N_node,)
+    from :func:`node_contributions`); actor nodes keep that fraction of each instance (their
+    ``instance`` buffer). Rows are cut by :meth:`omnire.trainer.Trainer.keep_gaussian_rows`,
+    so training continues from the result. Returns {node: (count before, count after)}."""
+    counts = {}
+    for name, node in trainer.recon.gaussian_nodes().items():
+        if node.num_gaussians == 0:
+            counts[name] = (0, 0)
+            continue
+        keep = keep_top(contributions[name], fraction, node.gaussian_buffers.get("instance"))
+        counts[name] = trainer.keep_gaussian_rows(name, keep)
+    return counts

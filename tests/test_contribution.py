@@ -1,4 +1,4 @@
-"""The contribution of a Gaussian to a view (omnire_compact/contribution.py) against a
+"""The contribution of a Gaussian to a view (omnire/contribution.py) against a
 per-pixel evaluation in float64, for every rasterizer installed; and the per-group top
 fraction against sorting each group by hand."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import torch
 
 from omnire.api import Camera, quat_to_rotmat
 from omnire.rasterization import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_MIN
-from omnire_compact.contribution import keep_top, view_weights
+from omnire.contribution import keep_top, view_weights
 
 W, H = 40, 30
 
