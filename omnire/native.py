@@ -2,9 +2,10 @@
 
 Plugins with native kernels (the cpu rasterizer, SMPL skinning) describe their extension
 with a :class:`NativeExtension`; it is compiled with ``torch.utils.cpp_extension.load`` into
-a cache directory keyed by the sources' hash, the compiler flags and the torch version, so a
-rebuild happens only when one of them changes, and later processes load the cached ``.so``
-in milliseconds. Any failure (no compiler, a CPU without a required instruction set, ...)
+a cache directory keyed by the sources' hash, the compiler flags and the torch installation
+(version and path), from copies of the sources kept there (so the build does not depend on
+where the repository is checked out). A rebuild happens only when one of them changes, and
+later processes load the cached ``.so`` in milliseconds. Any failure (no compiler, a CPU without a required instruction set, ...)
 is recorded once and reported by :meth:`NativeExtension.load` as ``(None, reason)``, so
 callers can fall back to torch.
 
@@ -127,14 +128,17 @@ class NativeExtension:
         return True, ""
 
     def build_directory(self) -> Path:
-        """Where these sources, flags and this torch build to: ``cache_dir()/<name>_<hash>``."""
+        """Where these sources, flags and this torch installation build to:
+        ``cache_dir()/<name>_<hash>``."""
         import torch
 
         digest = hashlib.sha256()
         for source in self.sources:
             digest.update(source.read_bytes())
         digest.update(" ".join(self.cflags + self.ldflags).encode())
-        digest.update(torch.__version__.encode())
+        # the torch installation, not only its version: the build rules name its headers by
+        # path, so two environments sharing one directory would rebuild it in turn
+        digest.update(f"{torch.__version__} {Path(torch.__file__).parent}".encode())
         return cache_dir() / f"{self.name}_{digest.hexdigest()[:12]}"
 
     def _build(self) -> ModuleType:
