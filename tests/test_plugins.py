@@ -1,5 +1,5 @@
-"""Plugin system: built-ins through the hooks, real entry-point plugins installed from a
-separate directory (pip), isolation of broken plugins, strict mode, blocking by name."""
+"""Plugin system: built-ins through the hooks, real entry-point plugins pip-installed into a
+separate directory, isolation of broken plugins, strict mode, blocking by name."""
 from __future__ import annotations
 
 import contextlib
@@ -85,15 +85,26 @@ BROKEN = '''
 
 @contextlib.contextmanager
 def installed_dists(root: Path, dists: dict[str, str]):
-    """Plugin distributions ``{distribution name: plugin.py body}`` pip-installed from
-    ``root`` for the duration (module ``omnire_test_...`` after the name)."""
+    """Plugin distributions ``{distribution name: plugin.py body}`` (module ``omnire_test_...``
+    after the name) pip-installed into a directory of their own, ``root/site``, which is on
+    this process's ``sys.path`` and its subprocesses' ``PYTHONPATH`` for the duration. Not into
+    the environment: the other test processes share it, and a broken plugin there fails their
+    strict loads."""
     paths = [_write_dist(root, dist, dist.replace("-", "_"), body) for dist, body in dists.items()]
-    pip = [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation"]
+    site = root / "site"
+    pip = [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation", "--target", str(site)]
     subprocess.run(pip + [str(d) for d in paths], check=True)
+    previous = os.environ.get("PYTHONPATH")
+    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(site), previous) if p)
+    sys.path.insert(0, str(site))
     try:
         yield
     finally:
-        subprocess.run([sys.executable, "-m", "pip", "uninstall", "--quiet", "-y", *dists], check=True)
+        sys.path.remove(str(site))
+        if previous is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = previous
 
 
 @pytest.fixture(scope="module")
