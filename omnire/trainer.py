@@ -311,6 +311,9 @@ class Trainer:
         fraction = self.config.method.densify.keep_after_growth
         if fraction >= 1.0:
             return {}
+        if self.lidar is not None:
+            log.warning("pruning by contribution to the camera views: Gaussians only the LiDAR sees go too "
+                        "(--method.densify.keep-after-growth 1 keeps them)")
         start = time.perf_counter()
         counts = prune_nodes(self, node_contributions(self.recon, self.train_views), fraction)
         seconds = time.perf_counter() - start
