@@ -1,6 +1,6 @@
 # Set-up, demo and tests. Everything installs into $(VENV); nothing else is touched.
 #   make demo   create the venv, install torch + omnire + every plugin (and compile the plugins'
-#               C++ extensions, a few minutes once per source version), train on the demo scene
+#               C++ extensions: about 2 minutes, once per source version), train on the demo scene
 #   make test   same install, then the import contracts and the test suite (TEST_WORKERS processes)
 # Override TORCH_SPEC for another torch (e.g. TORCH_SPEC="torch==2.5.1"); the default is the
 # CPU build this project is developed against. It is also written to a pip constraint file

@@ -227,7 +227,7 @@ def build_native_extensions(plugins, console) -> None:
     table = Table(title="native extensions")
     for col in ("name", "distribution", "status", "seconds"):
         table.add_column(col)
-    registry = plugins.registries()["native_extensions"]
+    registry = plugins.native_extensions
     for name, spec in registry.items():
         start = time.perf_counter()
         module, reason = spec.load()

@@ -5,9 +5,9 @@ with a :class:`NativeExtension`; it is compiled with ``torch.utils.cpp_extension
 a cache directory keyed by the sources' hash, the compiler flags and the torch installation
 (version and path), from copies of the sources kept there (so the build does not depend on
 where the repository is checked out). A rebuild happens only when one of them changes, and
-later processes load the cached ``.so`` in milliseconds. Any failure (no compiler, a CPU without a required instruction set, ...)
-is recorded once and reported by :meth:`NativeExtension.load` as ``(None, reason)``, so
-callers can fall back to torch.
+later processes load the cached ``.so`` in milliseconds. Any failure (no compiler, a CPU
+without a required instruction set, ...) is recorded once and reported by
+:meth:`NativeExtension.load` as ``(None, reason)``, so callers can fall back to torch.
 
 Builders take turns through an ``flock`` on the build directory, which the kernel drops
 when its holder dies. torch's own lock is a plain file (``<build dir>/lock``) that a build
@@ -88,9 +88,9 @@ def _builders_take_turns(build_dir: Path):
 
 def _sources_in(build_dir: Path, sources: Sequence[Path]) -> list[Path]:
     """Copies of ``sources`` in ``build_dir/sources``, compiled instead of the originals: the
-    build rules then name the same files from every checkout of the repository (ninja rebuilds
-    when a rule's source path changes, so a fresh clone or a second worktree would otherwise
-    recompile for minutes what the cache already holds). A copy is rewritten only when its
+    build rules then name the same files whichever checkout of the repository an environment
+    runs (ninja rebuilds when a rule's source path changes, so a checkout moved or cloned
+    again would otherwise recompile for minutes what the cache already holds). A copy is rewritten only when its
     bytes differ (the build directory is keyed by the sources' hash, so only after a killed
     copy): ninja also rebuilds when a source is newer than its object."""
     copies = []
