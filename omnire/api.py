@@ -20,7 +20,7 @@ from omnire.beams import (
 )
 from omnire.camera import CULL_SIGMAS, Camera, gaussian_reach, in_frustum, may_be_drawn
 from omnire.config import InstantiateConfig
-from omnire.contribution import keep_top, node_contributions, prune_nodes, view_weights
+from omnire.contribution import keep_top, node_contributions, prune_nodes, sweep_weights, view_weights
 from omnire.data.dataparser import (
     STATIONARY_THRESHOLD,
     Dataparser,

@@ -9,18 +9,27 @@ rasterizer through autograd (:func:`view_weights`) gives every Gaussian's weight
 view, including the rasterizer's own cut-offs (alpha < 1/255, the transmittance floor).
 Tested against a per-pixel evaluation in float64 (tests/test_contribution.py).
 
+A LiDAR sweep composites its rays' features the same way (features(r) = sum_i w_i(r) f_i,
+``rasterize_lidar``), so :func:`sweep_weights` gives each Gaussian's weight summed over a
+sweep's rays with the same trick, tested against a per-ray evaluation in float64. A run that
+learns LiDAR ranks its Gaussians by both sensors (:func:`node_contributions`): a Gaussian
+only the sweeps see (behind or beside forward-looking cameras) is not pruned for being
+invisible to the cameras.
+
 Two users: ``omnire compact`` prunes a trained run with it, and training prunes once at the end
 of its growth phase when ``--method.densify.keep-after-growth`` is below 1 (:func:`prune_nodes`).
 """
 from __future__ import annotations
 
 import math
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import torch
 
 from omnire.camera import Camera
-from omnire.rasterization import RasterSettings, Splats
+from omnire.lidarprojection import may_reach
+from omnire.lidarsweep import SensorPath, SweepRays, sectors_of
+from omnire.rasterization import LidarRays, LidarSettings, RasterSettings, Splats
 
 
 def view_weights(rasterizer, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -42,29 +51,84 @@ def view_weights(rasterizer, means: torch.Tensor, quats: torch.Tensor, scales: t
     return grad[:, 0].detach()
 
 
+def sweep_weights(rasterizer, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                  opacities: torch.Tensor, rays: LidarRays, settings: Optional[LidarSettings] = None) -> torch.Tensor:
+    """(N,) sum over the R rays of ``rays`` of each Gaussian's blending weight w_i = alpha_i T_i.
+
+    Args as :func:`view_weights`; ``rasterizer`` needs the ``lidar`` capability
+    (``rasterize_lidar``, omnire/rasterization.py)."""
+    N = means.shape[0]
+    if N == 0 or len(rays) == 0:
+        return torch.zeros(N, device=means.device)
+    ones = torch.ones(N, 1, dtype=means.dtype, device=means.device, requires_grad=True)
+    with torch.enable_grad():
+        out = rasterizer.rasterize_lidar(Splats(means.detach(), quats.detach(), scales.detach(), opacities.detach(),
+                                                ones), rays, LidarSettings() if settings is None else settings)
+        (grad,) = torch.autograd.grad(out.features.sum(), ones)
+    return grad[:, 0].detach()
+
+
+def _add(totals: dict[str, torch.Tensor], w: torch.Tensor, slices) -> None:
+    """Add the (N,) weights ``w`` of a gathered set to the node rows its ``slices`` name."""
+    for sl in slices:
+        part = w[sl.start:sl.end].to(torch.float64)
+        if sl.rows is None:
+            totals[sl.node][: len(part)] += part
+        else:
+            totals[sl.node].index_add_(0, sl.rows, part)
+
+
 @torch.no_grad()
-def node_contributions(recon, views, progress: Optional[Callable[[], None]] = None) -> dict[str, torch.Tensor]:
+def node_contributions(recon, views, progress: Optional[Callable[[], None]] = None,
+                       sweeps: Sequence[SweepRays] = (), path: Optional[SensorPath] = None,
+                       sectors: int = 1) -> dict[str, torch.Tensor]:
     """Per Gaussian node of ``recon`` (an :class:`omnire.api.Reconstruction`), the (N_node,)
-    summed blending weight of each of its Gaussians over ``views`` (recorded cameras at their
-    moments; actors count in the views where they are present, the only ones that draw them).
-    The Gaussians are those the scene graph renders at each view (posed actors, deformed
-    bodies, the camera's refined pose), culled to the view as a render culls them."""
-    totals = {name: torch.zeros(node.num_gaussians, dtype=torch.float64, device=recon.device)
-              for name, node in recon.gaussian_nodes().items()}
+    contribution of each of its Gaussians: its blending weight summed over ``views``
+    (recorded cameras at their moments; actors count in the views where they are present,
+    the only ones that draw them). The Gaussians are those the scene graph renders at each
+    view (posed actors, deformed bodies, the camera's refined pose), culled to the view as a
+    render culls them.
+
+    With ``sweeps`` (recorded LiDAR sweeps, cast from ``path`` in ``sectors`` time sectors as
+    :meth:`omnire.api.Reconstruction.render_sweep` renders them), the weight summed over
+    their rays is added, each sensor as a share of its samples: camera weight / pixels of
+    ``views`` + LiDAR weight / rays of ``sweeps``, so neither sensor outweighs the other by
+    its sample count. ``progress`` is called after each view and each sweep."""
+    nodes = recon.gaussian_nodes()
+    camera = {name: torch.zeros(node.num_gaussians, dtype=torch.float64, device=recon.device)
+              for name, node in nodes.items()}
+    pixels = 0
     for view in views:
-        camera = recon.camera(view)
-        g, slices, _ = recon.gather(camera, recon.time(view.frame))
+        cam = recon.camera(view)
+        pixels += cam.width * cam.height
+        g, slices, _ = recon.gather(cam, recon.time(view.frame))
         if g is not None and len(g):
-            w = view_weights(recon.rasterizer, g.means, g.quats, g.activated_scales, g.activated_opacities, camera)
-            for sl in slices:
-                part = w[sl.start:sl.end].to(torch.float64)
-                if sl.rows is None:
-                    totals[sl.node][: len(part)] += part
-                else:
-                    totals[sl.node].index_add_(0, sl.rows, part)
+            _add(camera, view_weights(recon.rasterizer, g.means, g.quats, g.activated_scales,
+                                      g.activated_opacities, cam), slices)
         if progress is not None:
             progress()
-    return totals
+    if not sweeps:
+        return camera
+    if path is None:
+        raise ValueError("node_contributions: sweeps given without the sensor path they are cast from")
+    lidar = {name: torch.zeros_like(t) for name, t in camera.items()}
+    rays_total = 0
+    t0 = float(recon.scene.frame_timestamps[0])
+    for sweep in sweeps:
+        rays_total += len(sweep)
+        for sector in sectors_of(sweep, path, sectors, recon.device):
+            g, slices, _ = recon.gather(None, recon.time_since_start(sector.time - t0))
+            if g is None or not len(g):
+                continue
+            # only the Gaussians that can reach the sector's rays (the others weigh 0 on them)
+            reach = torch.nonzero(may_reach(g.means, g.scales, sector.rays, LidarSettings().eps_deg2))[:, 0]
+            w = torch.zeros(len(g), dtype=g.means.dtype, device=g.means.device)
+            w[reach] = sweep_weights(recon.rasterizer, g.means[reach], g.quats[reach], g.activated_scales[reach],
+                                     g.activated_opacities[reach], sector.rays)
+            _add(lidar, w, slices)
+        if progress is not None:
+            progress()
+    return {name: camera[name] / max(pixels, 1) + lidar[name] / max(rays_total, 1) for name in camera}
 
 
 def keep_top(contribution: torch.Tensor, fraction: float, groups: Optional[torch.Tensor] = None) -> torch.Tensor:

@@ -65,12 +65,15 @@ class DensifyConfig:
     """Prune below this opacity."""
     prune_scale: float = 0.1
     """x scene radius: prune larger Gaussians (after the first opacity reset)."""
-    max_gaussians: int = 400_000
-    """Budget per node: growth stops adding above it (the largest gradients win)."""
-    keep_after_growth: float = 1.0
+    max_gaussians: int = 200_000
+    """Budget per node: growth stops adding above it (the largest gradients win). Sized for
+    a CPU: at 400k the demo cut grew 824k Gaussians by half of a 600 s budget and took 3195
+    steps in it against 4038 at 200k (docs/benchmarks.md); raise it for long runs on a GPU."""
+    keep_after_growth: float = 0.4
     """When growth stops, keep this fraction of each node's Gaussians (of each actor's, for
-    actor nodes): those with the largest blending weight summed over the training views
-    (``omnire.contribution``); the remaining steps are then shorter. 1 = keep all."""
+    actor nodes): those contributing most to the training views and, when LiDAR is learned,
+    the training sweeps (``Trainer.training_contributions``); the remaining steps are then
+    shorter. 1 = keep all."""
 
     def __post_init__(self) -> None:
         if not 0 < self.grow_fraction <= 1:

@@ -36,6 +36,7 @@ from omnire.data.scene import SceneData, SceneTime, View
 from omnire.errors import ConfigError, UserError
 from omnire.io.atomic import atomic_write_bytes, atomic_write_text
 from omnire.lidartraining import LidarTraining
+from omnire.lidarsweep import aimed_from_sectors
 from omnire.losses import LossContext, masked_mean, ssim_map
 from omnire.model import RenderResult
 from omnire.nodes.base import NodeOutput
@@ -304,22 +305,37 @@ class Trainer:
         self.strategy.rows_changed(node_name, node, self.optimizers)
         return before, node.num_gaussians
 
+    def contribution_sources(self) -> int:
+        """How many renders :meth:`training_contributions` makes: training views, and training
+        sweeps when the run learns LiDAR."""
+        return len(self.train_views) + (0 if self.lidar is None else len(self.lidar.frames))
+
+    def training_contributions(self, progress: Optional[Callable[[], None]] = None) -> dict[str, torch.Tensor]:
+        """Per Gaussian node, the (N_node,) contribution of each Gaussian to what the run trains
+        on (:func:`omnire.contribution.node_contributions`): the training views and, when the
+        run learns LiDAR, the training sweeps whole (each as one time sector, aimed from the
+        sensor at its middle time). ``progress`` is called after each render."""
+        # one sector (the sweep at its middle time): on the demo cut's LiDAR run (325k Gaussians,
+        # 33 sweeps) the kept 40% agree with four sectors' on 99.1-99.8% of each node's rows,
+        # in 23 s instead of 49 s
+        sweeps = [] if self.lidar is None else [aimed_from_sectors(self.lidar.sweep(int(f)), self.lidar.path, 1)
+                                                for f in self.lidar.frames]
+        return node_contributions(self.recon, self.train_views, progress, sweeps=sweeps,
+                                  path=None if self.lidar is None else self.lidar.path, sectors=1)
+
     def prune_after_growth(self) -> dict:
         """When growth has stopped: keep ``densify.keep_after_growth`` of each node's Gaussians,
-        by their contribution to the training views (nothing when it is 1). Returns what the
+        by :meth:`training_contributions` (nothing when the fraction is 1). Returns what the
         run's ``densify_stop`` record keeps: the counts before and after and the seconds taken."""
         fraction = self.config.method.densify.keep_after_growth
         if fraction >= 1.0:
             return {}
-        if self.lidar is not None:
-            log.warning("pruning by contribution to the camera views: Gaussians only the LiDAR sees go too "
-                        "(--method.densify.keep-after-growth 1 keeps them)")
         start = time.perf_counter()
-        counts = prune_nodes(self, node_contributions(self.recon, self.train_views), fraction)
+        counts = prune_nodes(self, self.training_contributions(), fraction)
         seconds = time.perf_counter() - start
         before, after = (sum(c[i] for c in counts.values()) for i in (0, 1))
-        log.info("growth stopped: kept %d of %d Gaussians by their contribution to %d training views (%.1f s)",
-                 after, before, len(self.train_views), seconds)
+        log.info("growth stopped: kept %d of %d Gaussians by their contribution to %d training renders (%.1f s)",
+                 after, before, self.contribution_sources(), seconds)
         return {"pruned": {name: list(c) for name, c in counts.items()}, "prune_seconds": seconds}
 
     # ------------------------------------------------------------------ training

@@ -1,16 +1,19 @@
 """The contribution of a Gaussian to a view (omnire/contribution.py) against a
-per-pixel evaluation in float64, for every rasterizer installed; and the per-group top
-fraction against sorting each group by hand."""
+per-pixel evaluation in float64, and to a LiDAR sweep against a per-ray one, for every
+rasterizer installed (with the ``lidar`` capability); and the per-group top fraction against
+sorting each group by hand."""
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from omnire.api import Camera, quat_to_rotmat
 from omnire.rasterization import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_MIN
-from omnire.contribution import keep_top, view_weights
+from omnire.contribution import keep_top, sweep_weights, view_weights
+from omnire.rasterization import LidarRays
 
 W, H = 40, 30
 
@@ -64,14 +67,14 @@ def brute_force_weights(means, quats, scales, opacities, camera, eps2d: float = 
     return weights
 
 
-def rasterizers():
+def rasterizers(capability: str = ""):
     from omnire.plugins import load_plugins
 
     plugins = load_plugins()
     out = []
     for spec in plugins.rasterizers:
         ok, _ = spec.available(torch.device("cpu"))
-        if ok:
+        if ok and (not capability or capability in spec.capabilities):
             out.append(pytest.param(spec.factory(), id=spec.name))
     return out
 
@@ -85,6 +88,22 @@ def test_view_weights_match_per_pixel_evaluation(rasterizer):
                        Camera(camera.K.float(), camera.cam_to_world.float(), W, H, "cam"))
     assert got.shape == expected.shape
     torch.testing.assert_close(got.double(), expected, rtol=2e-4, atol=2e-4)
+
+
+@pytest.mark.parametrize("rasterizer", rasterizers("lidar"))
+def test_sweep_weights_match_per_ray_evaluation(rasterizer):
+    testing = pytest.importorskip("omnire_rasterizer_torch.testing")
+    scene = testing.random_lidar_scene(40, 400, seed=2)
+    # one-hot features: the per-ray evaluation's feature j of a ray is Gaussian j's weight on it
+    _, _, per_ray, _ = testing.brute_force(scene["means"], scene["quats"], scene["scales"], scene["opacities"],
+                                           np.eye(40), scene["pose"], scene["azimuth"], scene["elevation"], 0.5, 60.0)
+    expected = torch.from_numpy(per_ray.sum(0))
+    assert int((expected > 0).sum()) >= 20  # most Gaussians are met by some ray
+    f = {k: scene[k].float() for k in ("means", "quats", "scales", "opacities", "pose", "azimuth", "elevation")}
+    got = sweep_weights(rasterizer, f["means"], f["quats"], f["scales"], f["opacities"],
+                        LidarRays(f["pose"], f["azimuth"], f["elevation"], 0.5, 60.0))
+    assert got.shape == expected.shape
+    torch.testing.assert_close(got.double(), expected, rtol=1e-3, atol=1e-3)
 
 
 def test_keep_top_per_group_matches_sorting_each_group():

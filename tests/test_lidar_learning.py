@@ -1,19 +1,22 @@
 """Learned LiDAR appearance (omnire/lidarmodel.py): the per-Gaussian features exist only when
 asked for, flow through densification, pruning, checkpoints and PLY export like the colour
-does, receive gradients from rendered sweeps, and a short training with LiDAR brings a sweep
+does, receive gradients from rendered sweeps, count in the contribution measure that
+pruning ranks by (a Gaussian only the sweeps see is not invisible), and a short training with LiDAR brings a sweep
 rendered at a pose off the recorded path close to the ray-traced truth (tests/lidar_scene.py)."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 
 import numpy as np
 import pytest
 import torch
 
+from omnire.contribution import node_contributions
 from omnire.data.scene import SceneDataError
 from omnire.lidarmodel import LIDAR_KEY, LidarConfig, lidar_features_for
-from omnire.lidarsweep import beam_model_sweep, fixed_path, recorded_sweep, sensor_path
+from omnire.lidarsweep import aimed_from_sectors, beam_model_sweep, fixed_path, recorded_sweep, sensor_path
 from omnire.method import MethodConfig
 from omnire.nodes.background import BackgroundConfig
 from omnire.plugins import load_plugins
@@ -100,6 +103,29 @@ def test_features_flow_through_densify_prune_checkpoint_and_export(lidar_scene, 
     assert count == node.num_gaussians
     got = np.stack([vertex["lidar_intensity"], vertex["lidar_ray_drop"]], 1)
     np.testing.assert_array_equal(got, node.gaussian_params[LIDAR_KEY].detach().numpy())
+
+
+def test_pruning_counts_what_only_the_sweeps_see(lidar_scene, tmp_path):
+    """The camera looks along +x; the spinning sensor also sees the ground behind it. Ranked
+    by the cameras alone those Gaussians weigh nothing (a 30% prune keeps none of them: more
+    than 30% of the rows are in view); with the sweeps they weigh their share, and the
+    trainer's prune when growth stops keeps some."""
+    t = trainer(lidar_scene, tmp_path, lidar=True, densify=DensifyConfig(refine_start=10**6, keep_after_growth=0.3))
+    means = t.model.nodes["background"].gaussian_params["means"].detach()
+    behind = means[:, 0] < -3.0  # 3 m behind the first camera, 2.5 m behind the last
+    camera_only = node_contributions(t.recon, t.train_views)["background"]
+    assert int(behind.sum()) >= 100 and float(camera_only[behind].max()) == 0.0
+    assert float((camera_only > 0).float().mean()) > 0.3
+    sweeps = [aimed_from_sectors(t.lidar.sweep(int(f)), t.lidar.path, 4) for f in t.lidar.frames]
+    both = node_contributions(t.recon, t.train_views, sweeps=sweeps, path=t.lidar.path, sectors=4)["background"]
+    assert float((both[behind] > 0).float().mean()) > 0.8
+    in_view = camera_only > 0  # the camera's share is in the sum
+    assert bool((both[in_view] >= camera_only[in_view] / (32 * 24 * len(t.train_views)) * (1 - 1e-9)).all())
+    record = t.prune_after_growth()
+    n_before, n_after = record["pruned"]["background"]
+    assert n_after == math.ceil(0.3 * n_before)
+    kept = t.model.nodes["background"].gaussian_params["means"].detach()
+    assert int((kept[:, 0] < -3.0).sum()) >= 50, "what only the sweeps see was pruned"
 
 
 def test_a_lidar_step_gives_every_feature_and_geometry_a_gradient(lidar_scene, tmp_path):

@@ -25,7 +25,9 @@ from scene_helpers import TINY_RUN_METHOD_ARGS
 FAST_SCHEDULES = ["--method.densify.refine-start", "2", "--method.densify.refine-every", "3",
                   "--method.densify.reset-every", "4", "--method.densify.grad-threshold", "1e-5",
                   "--method.sh-degree-interval", "3", "--method.num-downscales", "1",
-                  "--method.resolution-schedule", "4", "--method.nodes.deformable.warmup-steps", "4"]
+                  "--method.resolution-schedule", "4", "--method.nodes.deformable.warmup-steps", "4",
+                  # the reference below predates pruning when growth stops (tested in test_trainer.py)
+                  "--method.densify.keep-after-growth", "1"]
 # the native rasterizer where built (steps of ~40 ms, not seconds) and neutral body poses (no pose estimation)
 FAST_BUILD = ["--method.rasterizer", "auto", "--method.nodes.smpl.pose-source", "neutral"]
 BUDGET = 3.0  # seconds of training of the time-budget runs (some 20-60 steps of the tiny scene)

@@ -175,13 +175,12 @@ def compact(trainer: Trainer, args: CompactArgs, console) -> tuple[dict[str, dic
     Gaussian counts before and after pruning."""
     from rich.progress import Progress
 
-    from omnire.api import node_contributions, prune_nodes
+    from omnire.api import prune_nodes
 
     evaluations = {"source": trainer.evaluate(write=False)}
-    views = trainer.train_views
     with Progress(console=console, transient=True, disable=not args.progress) as bar:
-        task = bar.add_task("contribution", total=len(views))
-        contributions = node_contributions(trainer.recon, views, progress=lambda: bar.advance(task))
+        task = bar.add_task("contribution", total=trainer.contribution_sources())
+        contributions = trainer.training_contributions(progress=lambda: bar.advance(task))
     counts = prune_nodes(trainer, contributions, args.keep_fraction)
     if args.finetune_steps:
         evaluations["pruned"] = trainer.evaluate(write=False)
