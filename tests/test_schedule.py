@@ -265,4 +265,6 @@ def test_a_step_budget_continues_a_time_runs_schedule_step(synth, timed):
     more.train()
     assert (more.step, more.recon.schedule_step) == (slow.step + 2, end + 2)
     recon = Reconstruction.from_run(more.run_dir, load_plugins())
-    assert recon.schedule_step == end + 2 and recon.sh_degree() == slow.recon.sh_degree() >= 2
+    # the degree of the saved schedule step, not of the step count (some 25 steps: degree 0);
+    # 2 or 3, as the time run ended short of the band at schedule step 3000 or not
+    assert recon.schedule_step == end + 2 and recon.sh_degree() >= max(2, slow.recon.sh_degree())
