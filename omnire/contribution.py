@@ -32,6 +32,16 @@ from omnire.lidarsweep import SensorPath, SweepRays, sectors_of
 from omnire.rasterization import LidarRays, LidarSettings, RasterSettings, Splats
 
 
+def _summed_weights(means: torch.Tensor, composite: Callable[[torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    """(N,) d(sum of ``composite(ones)``) / d ones: each Gaussian's blending weight summed over
+    what ``composite`` draws, given a one-channel colour (N, 1) of ones that requires grad."""
+    N = means.shape[0]
+    ones = torch.ones(N, 1, dtype=means.dtype, device=means.device, requires_grad=True)
+    with torch.enable_grad():
+        (grad,) = torch.autograd.grad(composite(ones).sum(), ones)
+    return grad[:, 0].detach()
+
+
 def view_weights(rasterizer, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                  opacities: torch.Tensor, camera: Camera) -> torch.Tensor:
     """(N,) sum over the pixels of ``camera`` of each Gaussian's blending weight w_i = alpha_i T_i.
@@ -40,15 +50,11 @@ def view_weights(rasterizer, means: torch.Tensor, quats: torch.Tensor, scales: t
     (N, 4), scales (N, 3) (standard deviations), opacities (N,) in [0, 1]; no gradient flows
     to them. ``rasterizer``: any backend of the rasterizer contract (omnire/rasterization.py).
     """
-    N = means.shape[0]
-    if N == 0:
+    if means.shape[0] == 0:
         return torch.zeros(0, device=means.device)
-    ones = torch.ones(N, 1, dtype=means.dtype, device=means.device, requires_grad=True)
-    with torch.enable_grad():
-        out = rasterizer.rasterize(Splats(means.detach(), quats.detach(), scales.detach(), opacities.detach(), ones),
-                                   camera, RasterSettings(background=None))
-        (grad,) = torch.autograd.grad(out.rgb.sum(), ones)
-    return grad[:, 0].detach()
+    g = [t.detach() for t in (means, quats, scales, opacities)]
+    return _summed_weights(means, lambda ones: rasterizer.rasterize(Splats(*g, ones), camera,
+                                                                    RasterSettings(background=None)).rgb)
 
 
 def sweep_weights(rasterizer, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -57,15 +63,11 @@ def sweep_weights(rasterizer, means: torch.Tensor, quats: torch.Tensor, scales: 
 
     Args as :func:`view_weights`; ``rasterizer`` needs the ``lidar`` capability
     (``rasterize_lidar``, omnire/rasterization.py)."""
-    N = means.shape[0]
-    if N == 0 or len(rays) == 0:
-        return torch.zeros(N, device=means.device)
-    ones = torch.ones(N, 1, dtype=means.dtype, device=means.device, requires_grad=True)
-    with torch.enable_grad():
-        out = rasterizer.rasterize_lidar(Splats(means.detach(), quats.detach(), scales.detach(), opacities.detach(),
-                                                ones), rays, LidarSettings() if settings is None else settings)
-        (grad,) = torch.autograd.grad(out.features.sum(), ones)
-    return grad[:, 0].detach()
+    if means.shape[0] == 0 or len(rays) == 0:
+        return torch.zeros(means.shape[0], device=means.device)
+    g = [t.detach() for t in (means, quats, scales, opacities)]
+    settings = LidarSettings() if settings is None else settings
+    return _summed_weights(means, lambda ones: rasterizer.rasterize_lidar(Splats(*g, ones), rays, settings).features)
 
 
 def _add(totals: dict[str, torch.Tensor], w: torch.Tensor, slices) -> None:
@@ -114,6 +116,7 @@ def node_contributions(recon, views, progress: Optional[Callable[[], None]] = No
     lidar = {name: torch.zeros_like(t) for name, t in camera.items()}
     rays_total = 0
     t0 = float(recon.scene.frame_timestamps[0])
+    settings = LidarSettings()
     for sweep in sweeps:
         rays_total += len(sweep)
         for sector in sectors_of(sweep, path, sectors, recon.device):
@@ -121,10 +124,10 @@ def node_contributions(recon, views, progress: Optional[Callable[[], None]] = No
             if g is None or not len(g):
                 continue
             # only the Gaussians that can reach the sector's rays (the others weigh 0 on them)
-            reach = torch.nonzero(may_reach(g.means, g.scales, sector.rays, LidarSettings().eps_deg2))[:, 0]
+            reach = torch.nonzero(may_reach(g.means, g.scales, sector.rays, settings.eps_deg2))[:, 0]
             w = torch.zeros(len(g), dtype=g.means.dtype, device=g.means.device)
             w[reach] = sweep_weights(recon.rasterizer, g.means[reach], g.quats[reach], g.activated_scales[reach],
-                                     g.activated_opacities[reach], sector.rays)
+                                     g.activated_opacities[reach], sector.rays, settings)
             _add(lidar, w, slices)
         if progress is not None:
             progress()
