@@ -115,12 +115,11 @@ def node_contributions(recon, views, progress: Optional[Callable[[], None]] = No
         raise ValueError("node_contributions: sweeps given without the sensor path they are cast from")
     lidar = {name: torch.zeros_like(t) for name, t in camera.items()}
     rays_total = 0
-    t0 = float(recon.scene.frame_timestamps[0])
     settings = LidarSettings()
     for sweep in sweeps:
         rays_total += len(sweep)
         for sector in sectors_of(sweep, path, sectors, recon.device):
-            g, slices, _ = recon.gather(None, recon.time_since_start(sector.time - t0))
+            g, slices, _ = recon.gather(None, recon.sweep_actor_moment(sweep, sector.time))
             if g is None or not len(g):
                 continue
             # only the Gaussians that can reach the sector's rays (the others weigh 0 on them)

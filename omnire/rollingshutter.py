@@ -7,7 +7,8 @@ and elevation are in that pose's frame (docs/lidar.md). ``rasterize_lidar`` rend
 from one pose, so a caller splits the sweep into K sectors of equal duration
 (:func:`sweep_sectors`), renders each sector's rays from the sensor pose interpolated at the
 sector's middle time (rotation SLERP, translation linear: :func:`omnire.interpolation.interpolate_poses`),
-with the actors placed at that time, and puts the results back in the sweep's order with
+with the actors placed at that time (or, where the dataset's boxes hold the actors where the
+sweep saw them, at the sweep's end: ``Reconstruction.sweep_actor_moment``), and puts the results back in the sweep's order with
 each sector's ``index``. A ray's origin is then off by at most the sensor's motion over half
 a sector (speed x duration / (2K): 2 cm at 36 km/h over a 0.1 s sweep with K = 25), its
 direction by the rotation over half a sector. Rays without recorded times (a beam grid at a

@@ -467,18 +467,29 @@ class Reconstruction:
         return self.model.render_lidar([(d.node, out) for d, (_, out) in zip(drawn, outputs)], rays, settings,
                                        geometry_only)
 
+    def sweep_actor_moment(self, sweep: SweepRays, sector_time: float) -> SceneTime:
+        """The moment whose actors the rays of ``sweep`` fired around ``sector_time`` (log
+        seconds) meet: that time itself when the scene's boxes hold their actors at the
+        frames' timestamps; the sweep's end (its last ray's time, a recorded frame's
+        timestamp) when they hold them where the sweep saw them (``SceneData.box_timing``
+        ``"sweep"``), so that every sector meets each actor where its box was drawn."""
+        seconds = sector_time
+        if self.scene.box_timing == "sweep" and len(sweep):
+            seconds = float(sweep.times.max())
+        return self.time_since_start(seconds - float(self.scene.frame_timestamps[0]))
+
     def render_sweep(self, sweep: SweepRays, path: SensorPath, sectors: int = 1, step: Optional[int] = None,
                      hidden: Collection[str] = frozenset(), edits: Optional[ActorEdits] = None,
                      settings: Optional[LidarSettings] = None) -> LidarRender:
         """Render a sweep's rays (:class:`~omnire.lidarsweep.SweepRays`, in the order given)
         from the sensor poses ``path`` gives at their times, in ``sectors`` equal time spans
-        (rolling shutter: each span's rays see the scene, and are cast from the sensor, at the
-        span's middle time; :func:`~omnire.lidarsweep.sectors_of`)."""
+        (rolling shutter: each span's rays are cast from the sensor at the span's middle time,
+        :func:`~omnire.lidarsweep.sectors_of`, and meet the actors of
+        :meth:`sweep_actor_moment`)."""
         parts, order = [], []
-        t0 = float(self.scene.frame_timestamps[0])
         for sector in sectors_of(sweep, path, sectors, self.device):
-            parts.append(self.render_lidar(sector.rays, self.time_since_start(sector.time - t0), step, hidden, edits,
-                                           settings=settings))
+            parts.append(self.render_lidar(sector.rays, self.sweep_actor_moment(sweep, sector.time), step, hidden,
+                                           edits, settings=settings))
             order.append(sector.index)
         if not parts:
             empty = torch.zeros(0, device=self.device)

@@ -295,6 +295,10 @@ class SceneTime:
         return int(self.frame) if float(self.frame).is_integer() else None
 
 
+BOX_TIMINGS = ("frame", "sweep")
+"""The moments a dataset's boxes can hold their actors at (:attr:`SceneData.box_timing`)."""
+
+
 def holdout_split(num_frames: int, every: int) -> tuple[np.ndarray, np.ndarray]:
     """Train/test frame split: frames ``every, 2*every, ...`` are held out (all cameras).
 
@@ -325,6 +329,11 @@ class SceneData:
         attribution: licence text to show with renders of this data.
         estimate_ego_masks: estimate masks of the recording vehicle from the images for the
             cameras without an ``ego_mask_path`` (:mod:`omnire.egomask`).
+        box_timing: when a frame's boxes hold their actors (one of :data:`BOX_TIMINGS`):
+            ``"frame"`` at the frame's timestamp; ``"sweep"`` where the frame's LiDAR sweep
+            saw them (annotators draw boxes on the sweep's points, which a rotating sensor
+            records over its revolution), so a rendered sweep places the actors of every time
+            sector at the sweep's end, as annotated (``Reconstruction.sweep_actor_moment``).
     """
 
     name: str
@@ -339,6 +348,7 @@ class SceneData:
     ego_poses: Optional[np.ndarray] = None
     attribution: str = ""
     estimate_ego_masks: bool = False
+    box_timing: str = "frame"
 
     @property
     def num_frames(self) -> int:
@@ -390,6 +400,8 @@ class SceneData:
         _check_shape(np.asarray(self.frame_timestamps, dtype=np.float64), (F,), "frame_timestamps")
         if F > 1 and not np.all(np.diff(self.frame_timestamps) > 0):
             raise SceneDataError(f"scene {self.name!r}: frame_timestamps must increase strictly")
+        if self.box_timing not in BOX_TIMINGS:
+            raise SceneDataError(f"scene {self.name!r}: box_timing {self.box_timing!r}, expected one of {BOX_TIMINGS}")
         for cam in self.cameras:
             where = f"camera {cam.name!r}"
             _check_shape(cam.intrinsics, (3, 3), f"{where}.intrinsics")

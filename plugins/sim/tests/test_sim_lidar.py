@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from omnire.api import BeamModel, LidarConfig, Reconstruction, beam_model_sweep, fixed_path, sweep_points
+from omnire.api import (BeamModel, LidarConfig, LidarRender, Reconstruction, beam_model_sweep, fixed_path,
+                        sectors_of, spin_times, sweep_points)
 from omnire.observations import Observations
 from omnire_sim import Simulation, parse_scenario
 from sim_scene import small_omnire, street_scene
@@ -169,3 +170,32 @@ def test_sim_lidar_writes_a_point_cloud_per_frame_without_the_removed_car(demo_l
     cloud = np.load(out / npz)
     assert len(cloud["x"]) > 1000 and (out / ply).is_file() and np.isfinite(cloud["time"]).all()
     assert counts[k] > 10 and in_car(k, cloud) < 0.05 * counts[k], (counts[k], in_car(k, cloud))
+
+
+def test_boxes_drawn_on_the_sweep_hold_its_actors_in_every_sector(lidar_street):
+    """A sweep fired over the 0.1 s before frame 4 and rendered in 4 time sectors: with boxes
+    at the frames' timestamps (``box_timing`` "frame") each sector meets the riding bike and
+    the walking pedestrian where they were at its middle time, up to 0.35 m back; with boxes
+    drawn where the sweep saw their actors ("sweep", as PandaSet's) every sector meets them
+    at the sweep's end, frame 4: the same rays rendered sector by sector at frame 4."""
+    recon = lidar_street
+    end = recon.time(4).seconds
+    spun = beam_model_sweep(BEAMS, end)
+    times = spin_times(spun.azimuth_deg, end - 0.1, 0.1)
+    times[np.argmax(times)] = end  # the last ray fires at the frame's timestamp
+    spun = dataclasses.replace(spun, times=times)
+    path = fixed_path(SENSOR)
+    with torch.no_grad():
+        sectors = sectors_of(spun, path, 4)
+        at_end = LidarRender.cat([recon.render_lidar(s.rays, recon.time(4)) for s in sectors],
+                                 torch.cat([s.index for s in sectors]))
+        assert recon.scene.box_timing == "frame"
+        frame_timed = recon.render_sweep(spun, path, 4)
+        recon.scene.box_timing = "sweep"
+        try:
+            sweep_timed = recon.render_sweep(spun, path, 4)
+        finally:
+            recon.scene.box_timing = "frame"
+    assert torch.equal(sweep_timed.range, at_end.range) and torch.equal(sweep_timed.ray_drop, at_end.ray_drop)
+    moved = (frame_timed.range - at_end.range).abs() > 0.1
+    assert int(moved.sum()) > 20  # the rays that met the bike or the pedestrian where they were earlier
