@@ -253,12 +253,14 @@ def fixed_path(sensor_to_world: np.ndarray) -> SensorPath:
 
 
 def sectors_of(sweep: SweepRays, path: SensorPath, sectors: int, device: torch.device | str = "cpu",
-               dtype: torch.dtype = torch.float32) -> list[SweepSector]:
+               dtype: torch.dtype = torch.float32, probe_range: Optional[np.ndarray] = None) -> list[SweepSector]:
     """The rays of ``sweep`` in ``sectors`` time sectors, each cast from ``path``'s pose at its
-    middle time (:func:`omnire.rollingshutter.sweep_sectors`)."""
+    middle time (:func:`omnire.rollingshutter.sweep_sectors`), with ``probe_range`` (R,)
+    metres per ray when given."""
+    probe = None if probe_range is None else torch.as_tensor(probe_range, dtype=dtype, device=device)
     return sweep_sectors(torch.as_tensor(sweep.azimuth_deg, dtype=dtype, device=device),
                          torch.as_tensor(sweep.elevation_deg, dtype=dtype, device=device), sweep.times,
-                         path.times, path.poses, sweep.min_range, sweep.max_range, sectors)
+                         path.times, path.poses, sweep.min_range, sweep.max_range, sectors, probe)
 
 
 def aimed_from_sectors(sweep: SweepRays, path: SensorPath, sectors: int) -> SweepRays:

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from omnire.lidarloss import lidar_loss_terms
+from omnire.lidarloss import lidar_loss_terms, line_of_sight_probes
 from omnire.lidarmodel import LidarConfig
 from omnire.lidarsweep import SweepRays, aimed_from_sectors, recorded_sweep, sensor_path
 
@@ -65,5 +65,7 @@ class LidarTraining:
         if len(self.frames) == 0:
             return {}
         sweep = aimed_from_sectors(self.sample(config.rays_per_step), self.path, config.sectors)
-        render = self.recon.render_sweep(sweep, self.path, config.sectors, step=step)
-        return lidar_loss_terms(render, sweep, config)
+        probes = line_of_sight_probes(sweep, config, self.sampler)
+        render = self.recon.render_sweep(sweep, self.path, config.sectors, step=step,
+                                         probe_range=None if probes is None else probes.range)
+        return lidar_loss_terms(render, sweep, config, probes)

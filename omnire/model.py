@@ -419,16 +419,19 @@ class SceneModel(nn.Module):
         R = len(rays.azimuth_deg)
         if not columns["means"]:
             zeros = torch.zeros(R, device=self.device)
-            return LidarRender(zeros, zeros.clone(), zeros.clone(), torch.ones(R, device=self.device), zeros.clone())
+            light = None if rays.probe_range is None else torch.ones(R, device=self.device)
+            return LidarRender(zeros, zeros.clone(), zeros.clone(), torch.ones(R, device=self.device), zeros.clone(),
+                               probe_transmittance=light)
         cat = {k: torch.cat(v) for k, v in columns.items()}
         splats = Splats(cat["means"], cat["quats"], torch.exp(cat["scales"]), torch.sigmoid(cat["opacities"]),
                         activate(cat["f"]))
         out = self.rasterizer.rasterize_lidar(splats, rays, settings)
         if geometry_only:
             return LidarRender(out.range, out.median_range, torch.full_like(out.alpha, float("nan")),
-                               (1.0 - out.alpha).clamp(0.0, 1.0), out.alpha, len(splats))
+                               (1.0 - out.alpha).clamp(0.0, 1.0), out.alpha, len(splats), out.probe_transmittance)
         intensity, drop = decode(out.features, out.alpha)
-        return LidarRender(out.range, out.median_range, intensity, drop, out.alpha, len(splats))
+        return LidarRender(out.range, out.median_range, intensity, drop, out.alpha, len(splats),
+                           out.probe_transmittance)
 
     def composite(self, g: Optional[Gaussians], slices: list[NodeSlice], outputs: dict[str, NodeOutput],
                   camera: Camera, t: SceneTime, sh_degree: int = 3, hidden: frozenset[str] = frozenset()

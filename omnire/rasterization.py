@@ -65,6 +65,8 @@ Inputs
         azimuth_deg (R,) counter-clockwise from +x, any real value (taken modulo 360).
         elevation_deg (R,) above the sensor's x-y plane, in (-90, 90).
         min_range, max_range: metres; 0 <= min_range < max_range.
+        probe_range (R,) or None: metres along each ray at which to report the
+                   transmittance (e.g. just past a recorded return; finite).
         The rays need not lie on a grid (a :class:`~omnire.data.scene.BeamModel`'s grid and
         the directions of recorded returns both work).
     settings (:class:`LidarSettings`):
@@ -78,6 +80,10 @@ Outputs (:class:`LidarRenderOutput`)
                  (alpha < 0.5: no surface within the sensor's range).
     features     (R, F) = sum_i w_i f_i (no background).
     alpha        (R,) = sum_i w_i.
+    probe_transmittance (R,) or None (when ``probe_range`` is None): prod (1 - alpha_i) over
+                 the ray's composited Gaussians with r_i < probe_range (1 where none): the
+                 light left at the probe. Its gradient reaches the alphas (opacities and
+                 angular terms), not r_i (a step in r_i, as the median range's in alpha).
 
 Geometry (omnire/lidarprojection.py): each Gaussian is mapped to the sensor's sphere: its
 mean to (azimuth, elevation) and its covariance to a 2D angular one through the Jacobian of
@@ -169,6 +175,7 @@ class LidarRays:
     elevation_deg: torch.Tensor
     min_range: float
     max_range: float
+    probe_range: Optional[torch.Tensor] = None
 
     def __len__(self) -> int:
         return self.azimuth_deg.shape[0]
@@ -196,12 +203,13 @@ class LidarSettings:
 @dataclasses.dataclass
 class LidarRenderOutput:
     """Per ray (R rays, F feature channels): range (R,), median_range (R,), features (R, F),
-    alpha (R,) (see the module docstring)."""
+    alpha (R,), probe_transmittance (R,) or None (see the module docstring)."""
 
     range: torch.Tensor
     median_range: torch.Tensor
     features: torch.Tensor
     alpha: torch.Tensor
+    probe_transmittance: Optional[torch.Tensor] = None
 
 
 class Rasterizer(Protocol):
@@ -375,9 +383,12 @@ def check_lidar_inputs(splats: Splats, rays: LidarRays, settings: LidarSettings)
                    "elevation_deg": (rays.elevation_deg, (R,))})
     if colors.ndim != 2 or colors.shape[0] != N or colors.shape[1] < 1:
         raise RasterInputError(f"colors: shape {tuple(colors.shape)}, expected ({N}, F) with F >= 1 LiDAR features")
+    probe = [] if rays.probe_range is None else [("probe_range", rays.probe_range)]
+    if probe and tuple(rays.probe_range.shape) != (R,):
+        raise RasterInputError(f"probe_range: shape {tuple(rays.probe_range.shape)}, expected ({R},) like azimuth_deg")
     _check_finite(_splat_tensors(splats) + [("sensor_to_world", rays.sensor_to_world),
-                                            ("azimuth_deg", rays.azimuth_deg), ("elevation_deg", rays.elevation_deg)],
-                  "a NaN sweep")
+                                            ("azimuth_deg", rays.azimuth_deg), ("elevation_deg", rays.elevation_deg)]
+                  + probe, "a NaN sweep")
     _check_scales(splats)
     if bool((rays.elevation_deg.detach().abs() >= 90.0).any()):
         raise RasterInputError("elevation_deg: values outside (-90, 90) degrees")

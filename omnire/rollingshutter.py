@@ -17,6 +17,7 @@ pose no sensor visited) get them from their azimuth (:func:`spin_times`).
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 import numpy as np
 import torch
@@ -61,9 +62,11 @@ def sector_split(times: np.ndarray, sectors: int) -> tuple[np.ndarray, np.ndarra
 
 
 def sweep_sectors(azimuth_deg: torch.Tensor, elevation_deg: torch.Tensor, times: np.ndarray, pose_times: np.ndarray,
-                  sensor_to_world: np.ndarray, min_range: float, max_range: float, sectors: int) -> list[SweepSector]:
+                  sensor_to_world: np.ndarray, min_range: float, max_range: float, sectors: int,
+                  probe_range: Optional[torch.Tensor] = None) -> list[SweepSector]:
     """Split a sweep's rays (R,) (azimuths and elevations in degrees in the sensor frame at
-    each ray's time, ``times`` (R,) seconds) into ``sectors`` sectors of equal duration
+    each ray's time, ``times`` (R,) seconds, optional ``probe_range`` (R,) metres, see
+    :class:`~omnire.rasterization.LidarRays`) into ``sectors`` sectors of equal duration
     between the first and the last time; each sector holds its rays and the sensor pose
     interpolated from ``sensor_to_world`` (K, 4, 4) known at increasing ``pose_times`` (K,)
     at its middle time (held outside them). Empty sectors are left out; every ray is in
@@ -73,6 +76,8 @@ def sweep_sectors(azimuth_deg: torch.Tensor, elevation_deg: torch.Tensor, times:
     if azimuth_deg.shape != (R,) or elevation_deg.shape != (R,) or times.shape != (R,):
         raise RasterInputError(f"azimuth_deg {tuple(azimuth_deg.shape)}, elevation_deg "
                                f"{tuple(elevation_deg.shape)}, times {times.shape}: expected three (R,) arrays")
+    if probe_range is not None and probe_range.shape != (R,):
+        raise RasterInputError(f"probe_range {tuple(probe_range.shape)}: expected ({R},) like azimuth_deg")
     if not np.isfinite(times).all():
         raise RasterInputError("times: non-finite values")
     if sectors < 1:
@@ -89,6 +94,7 @@ def sweep_sectors(azimuth_deg: torch.Tensor, elevation_deg: torch.Tensor, times:
             continue
         pose = torch.as_tensor(poses[k], dtype=dtype if dtype.is_floating_point else torch.float64,
                                device=azimuth_deg.device)
-        out.append(SweepSector(LidarRays(pose, azimuth_deg[index], elevation_deg[index], min_range, max_range), index,
-                               float(middles[k])))
+        probe = None if probe_range is None else probe_range[index]
+        out.append(SweepSector(LidarRays(pose, azimuth_deg[index], elevation_deg[index], min_range, max_range, probe),
+                               index, float(middles[k])))
     return out

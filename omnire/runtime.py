@@ -32,6 +32,7 @@ from pathlib import Path
 from time import perf_counter
 from typing import TYPE_CHECKING, Collection, Iterable, Iterator, Mapping, Optional, Protocol, Sequence
 
+import numpy as np
 import torch
 
 from omnire.camera import Camera
@@ -480,14 +481,16 @@ class Reconstruction:
 
     def render_sweep(self, sweep: SweepRays, path: SensorPath, sectors: int = 1, step: Optional[int] = None,
                      hidden: Collection[str] = frozenset(), edits: Optional[ActorEdits] = None,
-                     settings: Optional[LidarSettings] = None) -> LidarRender:
+                     settings: Optional[LidarSettings] = None, probe_range: Optional[np.ndarray] = None
+                     ) -> LidarRender:
         """Render a sweep's rays (:class:`~omnire.lidarsweep.SweepRays`, in the order given)
         from the sensor poses ``path`` gives at their times, in ``sectors`` equal time spans
         (rolling shutter: each span's rays are cast from the sensor at the span's middle time,
         :func:`~omnire.lidarsweep.sectors_of`, and meet the actors of
-        :meth:`sweep_actor_moment`)."""
+        :meth:`sweep_actor_moment`); with ``probe_range`` (R,) metres, the transmittance left
+        there on each ray too (``LidarRender.probe_transmittance``)."""
         parts, order = [], []
-        for sector in sectors_of(sweep, path, sectors, self.device):
+        for sector in sectors_of(sweep, path, sectors, self.device, probe_range=probe_range):
             parts.append(self.render_lidar(sector.rays, self.sweep_actor_moment(sweep, sector.time), step, hidden,
                                            edits, settings=settings))
             order.append(sector.index)

@@ -110,6 +110,20 @@ def test_spin_times_and_bad_sectors():
     with pytest.raises(RasterInputError, match="sectors: 0"):
         sweep_sectors(az, az, np.zeros(3), np.zeros(1), np.eye(4)[None], 0.0, 10.0, 0)
     assert sweep_sectors(az[:0], az[:0], np.zeros(0), np.zeros(1), np.eye(4)[None], 0.0, 10.0, 4) == []
+    with pytest.raises(RasterInputError, match="probe_range"):
+        sweep_sectors(az, az, np.zeros(3), np.zeros(1), np.eye(4)[None], 0.0, 10.0, 4, torch.ones(2))
+
+
+def test_each_sector_carries_the_probes_of_its_rays():
+    az = torch.linspace(0.0, 359.0, 50, dtype=torch.float64)
+    probe = torch.arange(50, dtype=torch.float64) + 0.5
+    parts = sweep_sectors(az, az * 0, spin_times(az.numpy(), 0.0, 0.1), np.zeros(1), np.eye(4)[None], 0.0, 10.0, 4,
+                          probe)
+    assert len(parts) == 4
+    for part in parts:
+        torch.testing.assert_close(part.rays.probe_range, probe[part.index])
+    assert all(p.rays.probe_range is None for p in sweep_sectors(az, az * 0, np.zeros(50), np.zeros(1),
+                                                                  np.eye(4)[None], 0.0, 10.0, 2))
 
 
 @pytest.mark.skipif(not DEMO_SCENE.is_dir(), reason="demo scene not in this checkout")

@@ -50,26 +50,29 @@ class _ProjectFn(torch.autograd.Function):
 
 class _LidarFn(torch.autograd.Function):
     """(azimuth (N,), elevation (N,), opacities (N,), conics (N,3), quad (N,6), lin (N,3),
-    features (N,F)) -> (features (R,F), range sum (R,), alpha (R,), median range (R,)).
+    features (N,F)) -> (features (R,F), range sum (R,), alpha (R,), median range (R,),
+    transmittance at the probes (R,), or (0,) without probes).
 
     ``meta``: the projection's distance (N,), extent (N,2) and visible (N,), the rays'
     azimuths and elevations (R,), the tiling (:class:`omnire.api.SphereTiles`), min_range,
-    max_range, threads. The rays take no gradient."""
+    max_range, the probe ranges (R,) or (0,), threads. The rays take no gradient."""
 
     @staticmethod
     def forward(ctx, az, el, opac, conics, quad, lin, feat, meta):
-        distance, extent, visible, ray_az, ray_el, tiles, rmin, rmax, nthreads = meta
-        (o_feat, o_rsum, o_alpha, o_median, rec, goff, gids, roff, rids, ray_az,
-         dirs) = lidar_extension().lidar_forward(
+        distance, extent, visible, ray_az, ray_el, tiles, rmin, rmax, probe, nthreads = meta
+        (o_feat, o_rsum, o_alpha, o_median, rec, goff, gids, roff, rids, ray_az, dirs,
+         o_probe) = lidar_extension().lidar_forward(
             az, el, opac, conics, quad, lin, feat, distance, extent, visible, ray_az, ray_el, tiles.columns,
-            tiles.rows, tiles.column_deg, tiles.row_deg, tiles.first_elevation, rmin, rmax, nthreads)
-        ctx.save_for_backward(rec, feat, goff, gids, roff, rids, ray_az, ray_el, dirs, o_feat, o_rsum, o_alpha)
+            tiles.rows, tiles.column_deg, tiles.row_deg, tiles.first_elevation, rmin, rmax, probe, nthreads)
+        ctx.save_for_backward(rec, feat, goff, gids, roff, rids, ray_az, ray_el, dirs, o_feat, o_rsum, o_alpha,
+                              probe, o_probe)
         ctx.meta = (rmin, rmax, nthreads)
-        return o_feat, o_rsum, o_alpha, o_median
+        return o_feat, o_rsum, o_alpha, o_median, o_probe
 
     @staticmethod
-    def backward(ctx, g_feat, g_rsum, g_alpha, g_median):
-        rec, feat, goff, gids, roff, rids, ray_az, ray_el, dirs, o_feat, o_rsum, o_alpha = ctx.saved_tensors
+    def backward(ctx, g_feat, g_rsum, g_alpha, g_median, g_probe):
+        (rec, feat, goff, gids, roff, rids, ray_az, ray_el, dirs, o_feat, o_rsum, o_alpha, probe,
+         o_probe) = ctx.saved_tensors
         rmin, rmax, nthreads = ctx.meta
 
         def grad_or_zeros(g, like):
@@ -78,7 +81,8 @@ class _LidarFn(torch.autograd.Function):
         grads = lidar_extension().lidar_backward(
             rec, feat, goff, gids, roff, rids, ray_az, ray_el, dirs, o_feat, o_rsum, o_alpha,
             grad_or_zeros(g_feat, o_feat), grad_or_zeros(g_rsum, o_rsum), grad_or_zeros(g_alpha, o_alpha),
-            grad_or_zeros(g_median, o_alpha), rmin, rmax, nthreads).to(rec.dtype)
+            grad_or_zeros(g_median, o_alpha), rmin, rmax, probe, o_probe, grad_or_zeros(g_probe, o_probe),
+            nthreads).to(rec.dtype)
         # slots: azimuth, elevation, conic a b c, opacity, quad (6), lin (3), features (F)
         return (grads[:, 0], grads[:, 1], grads[:, 5], grads[:, 2:5], grads[:, 6:12], grads[:, 12:15], grads[:, 15:],
                 None)
@@ -98,8 +102,11 @@ def rasterize_lidar(splats: Splats, rays: LidarRays, settings: LidarSettings, nu
     az, el, conics, quad, lin, distance, extent, visible = _ProjectFn.apply(
         means, quats, scales, (opacities.detach(), pose, float(settings.eps_deg2), float(rays.min_range),
                                float(rays.max_range), int(num_threads)))
+    probe = (torch.zeros(0, dtype=dtype) if rays.probe_range is None
+             else rays.probe_range.detach().to(dtype).contiguous())
     meta = (distance, extent, visible, rays.azimuth_deg.detach().to(dtype).contiguous(),
             rays.elevation_deg.detach().to(dtype).contiguous(), SphereTiles.for_rays(rays), float(rays.min_range),
-            float(rays.max_range), int(num_threads))
-    feat, rsum, alpha, median = _LidarFn.apply(az, el, opacities, conics, quad, lin, colors, meta)
-    return LidarRenderOutput(range=rsum / alpha.clamp_min(1e-10), median_range=median, features=feat, alpha=alpha)
+            float(rays.max_range), probe, int(num_threads))
+    feat, rsum, alpha, median, light = _LidarFn.apply(az, el, opacities, conics, quad, lin, colors, meta)
+    return LidarRenderOutput(range=rsum / alpha.clamp_min(1e-10), median_range=median, features=feat, alpha=alpha,
+                             probe_transmittance=None if rays.probe_range is None else light)

@@ -25,13 +25,17 @@ OUTPUTS = ("range", "median_range", "alpha", "features")
 
 
 def run(rast, scene, rays=None, dtype=torch.float64, weights=None):
-    """Render ``scene`` with ``rast`` in ``dtype``; backward a weighted sum of every output.
-    Returns the outputs (float64) and the gradients of the five splat tensors (float64)."""
+    """Render ``scene`` with ``rast`` in ``dtype``; backward a weighted sum of every output
+    (the transmittance at the probes too when the rays have them). Returns the outputs
+    (float64) and the gradients of the five splat tensors (float64)."""
     leaves = [scene[k].detach().to(dtype).clone().requires_grad_(True) for k in NAMES]
     if rays is None:
         rays = LidarRays(scene["pose"], scene["azimuth"], scene["elevation"], 0.5, 60.0)
     out = rast.rasterize_lidar(Splats(*leaves), rays, LidarSettings())
     outs = [getattr(out, k) for k in OUTPUTS]
+    assert (out.probe_transmittance is None) == (rays.probe_range is None)
+    if rays.probe_range is not None:
+        outs.append(out.probe_transmittance)
     if weights is None:
         g = torch.Generator().manual_seed(3)
         weights = [torch.rand(o.shape, generator=g, dtype=torch.float64) for o in outs]
@@ -50,6 +54,27 @@ def test_float64_forward_and_gradients_equal_the_reference(seed):
     for name, a, b in zip(NAMES, grads, ref_grads):
         assert b.abs().max() > 0, name
         torch.testing.assert_close(a, b, atol=1e-9 * float(b.abs().max()), rtol=1e-7, msg=f"gradient of {name}")
+
+
+def probed(scene, seed):
+    """The scene's rays with probe ranges spread over its Gaussians' distances (3-20 m)."""
+    probe = torch.tensor(np.random.default_rng(seed).uniform(2.0, 22.0, len(scene["azimuth"])))
+    return LidarRays(scene["pose"], scene["azimuth"], scene["elevation"], 0.5, 60.0, probe)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_probe_transmittance_and_its_gradient_equal_the_reference(dtype):
+    scene = random_lidar_scene(1500, 2000, seed=8)
+    rays = probed(scene, 0)
+    outs, grads = run(CpuRasterizer(), scene, rays, dtype=dtype)
+    ref_outs, ref_grads = run(TorchRasterizer(), scene, rays)
+    light, ref_light = outs[-1], ref_outs[-1]
+    assert 0.1 < float((ref_light < 0.5).double().mean()) < 0.9
+    tol = 1e-9 if dtype == torch.float64 else 2e-4
+    torch.testing.assert_close(light, ref_light, atol=tol, rtol=0)
+    for name, a, b in zip(NAMES, grads, ref_grads):
+        scale = float(b.abs().max())
+        assert float((a - b).abs().max()) <= (1e-9 if dtype == torch.float64 else 2e-3) * scale, name
 
 
 def test_float32_against_the_float64_reference():
@@ -86,6 +111,15 @@ def test_gradcheck_native_float64():
     f(*leaves).backward()
     assert all(float(t.grad.abs().sum()) > 0 for t in leaves)  # every input takes part
     assert torch.autograd.gradcheck(f, leaves, eps=1e-6, atol=1e-5, rtol=1e-4)  # every input element
+
+    rays = probed(scene, 1)
+
+    def light(*leaves):
+        out = rast.rasterize_lidar(Splats(*leaves, scene["colors"]), rays)
+        return (out.probe_transmittance * weights[0]).sum() + (out.alpha * weights[1]).sum()
+
+    leaves = [scene[k].clone().requires_grad_(True) for k in NAMES[:4]]
+    assert torch.autograd.gradcheck(light, leaves, eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
 def test_beam_grid_and_recorded_directions_and_threads():

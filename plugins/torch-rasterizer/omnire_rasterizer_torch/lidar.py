@@ -68,6 +68,7 @@ def rasterize_lidar(splats: Splats, rays: LidarRays, settings: LidarSettings = L
     ray_az = rays.azimuth_deg.detach().to(device=dev, dtype=dt)
     ray_el = rays.elevation_deg.detach().to(device=dev, dtype=dt)
     dirs = ray_directions(ray_az, ray_el)
+    probe = None if rays.probe_range is None else rays.probe_range.detach().to(device=dev, dtype=dt)
 
     # anchor the outputs to the graph even where nothing is drawn
     anchor = 0.0 * (colors.sum() + opacities.sum() + proj.conics.sum() + proj.quad.sum() + proj.lin.sum()
@@ -79,25 +80,29 @@ def rasterize_lidar(splats: Splats, rays: LidarRays, settings: LidarSettings = L
     for i in range(0, R, chunk):
         idx = order[i: i + chunk]
         parts.append(_composite(idx, ray_tile[idx], ray_az[idx], ray_el[idx], dirs[idx], counts, starts, gids, proj,
-                                colors, rays, chunk_elements))
+                                colors, rays, chunk_elements, None if probe is None else probe[idx]))
         done_rays.append(idx)
     feat = torch.zeros(R, F, device=dev, dtype=dt) + anchor
     rsum = torch.zeros(R, device=dev, dtype=dt) + anchor
     alpha = torch.zeros(R, device=dev, dtype=dt) + anchor
     median = torch.full((R,), float(rays.max_range), device=dev, dtype=dt) + anchor
+    light = None if probe is None else torch.ones(R, device=dev, dtype=dt) + anchor
     if parts:
         idx = torch.cat(done_rays)
         feat = feat.index_copy(0, idx, torch.cat([p[0] for p in parts]))
         rsum = rsum.index_copy(0, idx, torch.cat([p[1] for p in parts]))
         alpha = alpha.index_copy(0, idx, torch.cat([p[2] for p in parts]))
         median = median.index_copy(0, idx, torch.cat([p[3] for p in parts]))
-    return LidarRenderOutput(range=rsum / alpha.clamp_min(1e-10), median_range=median, features=feat, alpha=alpha)
+        if light is not None:
+            light = light.index_copy(0, idx, torch.cat([p[4] for p in parts]))
+    return LidarRenderOutput(range=rsum / alpha.clamp_min(1e-10), median_range=median, features=feat, alpha=alpha,
+                             probe_transmittance=light)
 
 
-def _composite(idx, tile, az, el, dirs, counts, starts, gids, proj, colors, rays, chunk_elements):
+def _composite(idx, tile, az, el, dirs, counts, starts, gids, proj, colors, rays, chunk_elements, probe=None):
     """Composite the rays ``idx`` (C,) (tile (C,), azimuth, elevation (C,), directions
-    (C, 3)) over their tiles' lists. Returns features (C, F), range sum (C,), alpha (C,),
-    median range (C,)."""
+    (C, 3), probe ranges (C,) or None) over their tiles' lists. Returns features (C, F),
+    range sum (C,), alpha (C,), median range (C,), transmittance at the probe (C,) or None."""
     dev, dt = colors.device, colors.dtype
     C = len(idx)
     n = counts[tile]
@@ -109,6 +114,7 @@ def _composite(idx, tile, az, el, dirs, counts, starts, gids, proj, colors, rays
     crossed = torch.zeros(C, dtype=torch.bool, device=dev)
     trans = torch.ones(C, device=dev, dtype=dt)
     done = torch.zeros(C, dtype=torch.bool, device=dev)
+    light = None if probe is None else torch.ones(C, device=dev, dtype=dt)
     kc = max(1, min(kmax, chunk_elements // max(1, C)))
     for k0 in range(0, kmax, kc):
         k = torch.arange(k0, min(k0 + kc, kmax), device=dev)
@@ -133,7 +139,10 @@ def _composite(idx, tile, az, el, dirs, counts, starts, gids, proj, colors, rays
         crossing = alive & keep & (before > 0.5) & (cum <= 0.5)  # at most one per ray over all slices
         median = median + torch.where(crossing, r, torch.zeros_like(r)).sum(-1)
         crossed = crossed | crossing.any(-1)
+        if light is not None:
+            before_probe = alive & (r < probe[:, None])
+            light = light * torch.where(before_probe, 1.0 - a, torch.ones_like(a)).prod(-1)
         trans = trans * torch.where(alive, 1.0 - a, torch.ones_like(a)).prod(-1)
         done = done | ~(cum > TRANSMITTANCE_MIN).all(-1)
     median = torch.where(crossed, median, torch.full_like(median, float(rays.max_range)))
-    return feat, rsum, 1.0 - trans, median
+    return feat, rsum, 1.0 - trans, median, light

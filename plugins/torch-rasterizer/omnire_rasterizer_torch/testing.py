@@ -35,10 +35,11 @@ def wrap(x):
 
 
 def brute_force(means, quats, scales, opacities, features, pose, azimuth, elevation, min_range, max_range,
-                eps_deg2=0.01, range_of="max_response"):
+                eps_deg2=0.01, range_of="max_response", probe=None):
     """The contract of ``rasterize_lidar`` evaluated ray by ray. ``range_of`` "max_response"
     (the contract) or "centre" (the centre distance, for comparison). Returns range (R,),
-    median_range (R,), features (R, F), alpha (R,)."""
+    median_range (R,), features (R, F), alpha (R,), and with ``probe`` (R,) ranges the
+    transmittance at them (R,) as a fifth."""
     means, scales, features = (np.asarray(x, dtype=np.float64) for x in (means, scales, features))
     opacities = np.asarray(opacities, dtype=np.float64)
     pose = np.asarray(pose, dtype=np.float64)
@@ -67,6 +68,7 @@ def brute_force(means, quats, scales, opacities, features, pose, azimuth, elevat
     n_rays = len(az)
     out_range, out_median = np.zeros(n_rays), np.full(n_rays, float(max_range))
     out_feat, out_alpha = np.zeros((n_rays, features.shape[1])), np.zeros(n_rays)
+    out_light = np.ones(n_rays)
     for j in range(n_rays):
         a, e = np.radians(az[j]), np.radians(el[j])
         d = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
@@ -84,10 +86,14 @@ def brute_force(means, quats, scales, opacities, features, pose, azimuth, elevat
             wsum, rsum, fsum = wsum + w, rsum + w * r, fsum + w * f_o[i]
             if median is None and T * (1 - alpha) <= 0.5:
                 median = r
+            if probe is not None and r < probe[j]:
+                out_light[j] *= 1 - alpha
             T *= 1 - alpha
         out_range[j] = rsum / max(wsum, 1e-10)
         out_median[j] = max_range if median is None else median
         out_feat[j], out_alpha[j] = fsum, wsum
+    if probe is not None:
+        return out_range, out_median, out_feat, out_alpha, out_light
     return out_range, out_median, out_feat, out_alpha
 
 

@@ -13,17 +13,18 @@ from omnire_rasterizer_torch import TorchRasterizer
 from omnire_rasterizer_torch.testing import brute_force, flat_grid, random_lidar_scene
 
 
-def render(scene, rast=None, min_range=0.5, max_range=60.0, **settings):
+def render(scene, rast=None, min_range=0.5, max_range=60.0, probe=None, **settings):
     rast = rast or TorchRasterizer(chunk_elements=20_000)  # small: several ray and list slices
     splats = Splats(*(scene[k] for k in ("means", "quats", "scales", "opacities", "colors")))
-    rays = LidarRays(scene["pose"], scene["azimuth"], scene["elevation"], min_range, max_range)
+    rays = LidarRays(scene["pose"], scene["azimuth"], scene["elevation"], min_range, max_range, probe)
     return rast.rasterize_lidar(splats, rays, LidarSettings(**settings))
 
 
-def brute(scene, min_range=0.5, max_range=60.0, eps_deg2=0.01, range_of="max_response"):
+def brute(scene, min_range=0.5, max_range=60.0, eps_deg2=0.01, range_of="max_response", probe=None):
     args = [scene[k].detach().numpy() for k in ("means", "quats", "scales", "opacities", "colors", "pose",
                                                  "azimuth", "elevation")]
-    return brute_force(*args, min_range, max_range, eps_deg2, range_of)
+    return brute_force(*args, min_range, max_range, eps_deg2, range_of,
+                       None if probe is None else probe.numpy())
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -36,6 +37,23 @@ def test_forward_matches_brute_force(seed):
     np.testing.assert_allclose(out.features.numpy(), feat, atol=1e-10)
     np.testing.assert_allclose(out.range.numpy(), rng, atol=1e-8)
     np.testing.assert_allclose(out.median_range.numpy(), median, atol=1e-8)
+
+
+def test_probe_transmittance_matches_brute_force():
+    """The light left at a probe range per ray: the product of (1 - alpha) over the pairs in
+    front of it; 1 with the probe before every Gaussian, 1 - alpha past all of them."""
+    scene = random_lidar_scene(300, 400, seed=7)
+    rng = np.random.default_rng(0)
+    probe = torch.tensor(rng.uniform(0.0, 25.0, 400))
+    probe[:40] = -1.0  # in front of everything
+    probe[40:80] = 1e3  # behind everything
+    out = render(scene, probe=probe)
+    _, _, _, alpha, light = brute(scene, probe=probe)
+    np.testing.assert_allclose(out.probe_transmittance.numpy(), light, atol=1e-10)
+    assert np.all(light[:40] == 1.0)
+    np.testing.assert_allclose(light[40:80], 1.0 - alpha[40:80], atol=1e-12)
+    assert 0.05 < np.mean(light[80:] < 0.5) < 0.95  # probes both in front of and behind surfaces
+    assert render(scene).probe_transmittance is None
 
 
 def test_gradcheck_float64():
@@ -58,6 +76,18 @@ def test_gradcheck_float64():
     for name, t in zip(names, leaves):
         assert t.grad is not None and t.grad.abs().sum() > 0, f"no gradient reaches {name}"
     assert torch.autograd.gradcheck(f, leaves, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+
+    probe = torch.tensor(np.random.default_rng(1).uniform(3.0, 20.0, 40))
+
+    def light(*leaves):
+        out = render({**scene, **dict(zip(names, leaves))}, probe=probe)
+        return (out.probe_transmittance * weights[0]).sum()
+
+    leaves = [scene[k].clone().requires_grad_(True) for k in names[:4]]
+    light(*leaves, scene["colors"]).backward()
+    assert float(leaves[3].grad.abs().sum()) > 0  # the opacities reach it
+    assert torch.autograd.gradcheck(lambda *x: light(*x, scene["colors"]), leaves, eps=1e-6, atol=1e-5, rtol=1e-4,
+                                    fast_mode=True)
 
 
 def ground_scene(height=1.8, sigma=0.15, spacing=0.15, sector_deg=(0.0, 10.0)):
@@ -178,15 +208,19 @@ def bad_inputs(scene):
         ("negative scales", {"scales": -scene["scales"]}, (0.5, 60.0), "scales: negative"),
         ("max_range below min_range", {}, (5.0, 1.0), "min_range, max_range"),
         ("infinite max_range", {}, (0.0, float("inf")), "min_range, max_range"),
+        ("probes of another length", {"probe": torch.ones(5, dtype=torch.float64)}, (0.5, 60.0), "probe_range: shape"),
+        ("a NaN probe", {"probe": torch.tensor([1.0, 2, float("nan"), 3, 4, 5], dtype=torch.float64)}, (0.5, 60.0),
+         "probe_range: 1 non-finite"),
     ]
 
 
-@pytest.mark.parametrize("case", range(10))
+@pytest.mark.parametrize("case", range(12))
 def test_bad_input_names_the_tensor(case):
     scene = random_lidar_scene(8, 6, seed=2)
     name, change, (lo, hi), needle = bad_inputs(scene)[case]
+    probe = change.pop("probe", None)
     try:
-        render({**scene, **change}, min_range=lo, max_range=hi)
+        render({**scene, **change}, min_range=lo, max_range=hi, probe=probe)
         outcome, wrong = "rendered", True
     except RasterInputError as exc:
         outcome, wrong = str(exc), needle not in str(exc)

@@ -181,18 +181,19 @@ void pack_records(int64_t N, const S* az, const S* el, const S* con, const S* op
 }
 
 // Per tile: its rays' state (transmittance, sums, whether still composited), then each
-// Gaussian of the list in order against every live ray of the tile.
+// Gaussian of the list in order against every live ray of the tile. With ``probe`` (R,)
+// (else null) also the transmittance left by the pairs in front of each ray's probe range.
 template <typename S>
 void composite_forward(const Lists& gl, const Lists& rl, const S* rec, const S* feat, int F, const S* ray_az,
-                       const S* ray_el, const S* dirs, S rmin, S rmax, S* out_feat, S* out_rsum, S* out_alpha,
-                       S* out_median, int nthreads) {
+                       const S* ray_el, const S* dirs, S rmin, S rmax, const S* probe, S* out_feat, S* out_rsum,
+                       S* out_alpha, S* out_median, S* out_probe, int nthreads) {
   const int64_t tiles = gl.off.size(0) - 1;
   const int64_t* goff = gl.off.data_ptr<int64_t>();
   const int32_t* gids = gl.items.data_ptr<int32_t>();
 #pragma omp parallel num_threads(nthreads)
   {
     TileWalk<S> ws;
-    std::vector<S> rsum, median, acc;
+    std::vector<S> rsum, median, acc, light, at;
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < tiles; ++tile) {
       const int64_t P = ws.start(rl, tile, ray_az, ray_el, dirs);
@@ -200,6 +201,11 @@ void composite_forward(const Lists& gl, const Lists& rl, const S* rec, const S* 
       rsum.assign(P, S(0));
       median.assign(P, rmax);
       acc.assign(P * F, S(0));
+      if (probe) {
+        light.assign(P, S(1));
+        at.resize(P);
+        for (int64_t k = 0; k < P; ++k) at[k] = probe[ws.id[k]];
+      }
       for (int64_t e = goff[tile]; e < goff[tile + 1] && ws.live > 0; ++e) {
         const int64_t gi = gids[e];
         const S* g = rec + gi * REC;
@@ -221,6 +227,7 @@ void composite_forward(const Lists& gl, const Lists& rl, const S* rec, const S* 
             median[k] = p.r;
             ws.crossed[k] = 1;
           }
+          if (probe && p.r < at[k]) light[k] *= S(1) - p.a;
           ws.T[k] = nT;
         }
       }
@@ -230,6 +237,7 @@ void composite_forward(const Lists& gl, const Lists& rl, const S* rec, const S* 
         out_rsum[j] = rsum[k];
         out_alpha[j] = S(1) - ws.T[k];
         out_median[j] = median[k];
+        if (probe) out_probe[j] = light[k];
       }
     }
   }
@@ -237,13 +245,15 @@ void composite_forward(const Lists& gl, const Lists& rl, const S* rec, const S* 
 
 // The forward's walk again with the gradients: dL/dalpha_i = T_i c_i - (sum over later
 // pairs of w_j c_j) / (1 - alpha_i), the later sum being the total (from the forward's
-// outputs) less the running prefix. Per Gaussian the sums over the tile's rays go to a
+// outputs) less the running prefix; a pair in front of the ray's probe adds
+// -g_probe T_probe / (1 - alpha_i). Per Gaussian the sums over the tile's rays go to a
 // per-thread buffer; the buffers are added in thread order.
 template <typename S>
 void composite_backward(const Lists& gl, const Lists& rl, const S* rec, const S* feat, int F, const S* ray_az,
                         const S* ray_el, const S* dirs, S rmin, S rmax, const S* o_feat, const S* o_rsum,
                         const S* o_alpha, const S* g_feat, const S* g_rsum, const S* g_alpha, const S* g_median,
-                        int64_t N, double* grads, int nthreads) {
+                        const S* probe, const S* o_probe, const S* g_probe, int64_t N, double* grads,
+                        int nthreads) {
   const int64_t tiles = gl.off.size(0) - 1;
   const int64_t* goff = gl.off.data_ptr<int64_t>();
   const int32_t* gids = gl.items.data_ptr<int32_t>();
@@ -254,7 +264,7 @@ void composite_backward(const Lists& gl, const Lists& rl, const S* rec, const S*
     const int me = omp_get_thread_num();
     double* mine = me == 0 ? grads : buffers.data() + size_t(me - 1) * N * K;  // thread 0 writes the output
     TileWalk<S> ws;
-    std::vector<S> prefix, total, gf, gR, gA, gM;
+    std::vector<S> prefix, total, gf, gR, gA, gM, at, gP;
     std::vector<double> d(K);
 #pragma omp for schedule(static, 1)
     for (int64_t tile = 0; tile < tiles; ++tile) {
@@ -266,8 +276,16 @@ void composite_backward(const Lists& gl, const Lists& rl, const S* rec, const S*
       gR.resize(P);
       gA.resize(P);
       gM.resize(P);
+      if (probe) {
+        at.resize(P);
+        gP.resize(P);
+      }
       for (int64_t k = 0; k < P; ++k) {
         const int64_t j = ws.id[k];
+        if (probe) {
+          at[k] = probe[j];
+          gP[k] = g_probe[j] * o_probe[j];  // dL/dT_probe * T_probe
+        }
         gR[k] = g_rsum[j];
         gA[k] = g_alpha[j];
         gM[k] = g_median[j];
@@ -305,7 +323,8 @@ void composite_backward(const Lists& gl, const Lists& rl, const S* rec, const S*
           }
           prefix[k] += w * ci;
           const S suffix = total[k] - prefix[k];  // sum over the later pairs of w_j c_j
-          const S dal = ws.T[k] * ci - suffix / (S(1) - p.a);
+          S dal = ws.T[k] * ci - suffix / (S(1) - p.a);
+          if (probe && p.r < at[k]) dal -= gP[k] / (S(1) - p.a);
           S dr = w * gR[k];
           if (!ws.crossed[k] && nT <= S(0.5)) {
             dr += gM[k];
@@ -652,16 +671,16 @@ void tile_boxes(int64_t N, const S* az, const S* el, const S* extent, const bool
 // lidar_project (azimuth, elevation (N,), conics (N,3), quad (N,6), lin (N,3), distance
 // (N,), extent (N,2), visible (N,) bool), opacities (N,), features (N,F); the rays' azimuth
 // and elevation (R,) in degrees; the tiling (columns, rows, column_deg, row_deg, first
-// elevation); min_range, max_range.
+// elevation); min_range, max_range; the probe ranges (R,), or (0,) for none.
 // Returns [features (R,F), range sum (R,), alpha (R,), median range (R,), records (N,REC),
 //          Gaussian tile offsets, Gaussian ids, ray tile offsets, ray ids, ray azimuths in
-//          [0, 360) (R,), ray directions (R,3)].
+//          [0, 360) (R,), ray directions (R,3), transmittance at the probes (R,) or (0,)].
 std::vector<at::Tensor> lidar_forward(at::Tensor az, at::Tensor el, at::Tensor opac, at::Tensor conics,
                                       at::Tensor quad, at::Tensor lin, at::Tensor feat, at::Tensor distance,
                                       at::Tensor extent, at::Tensor visible, at::Tensor ray_az_in, at::Tensor ray_el,
                                       int64_t columns, int64_t rows, double column_deg, double row_deg,
                                       double first_elevation, double min_range, double max_range,
-                                      int64_t nthreads) {
+                                      at::Tensor probe, int64_t nthreads) {
   const auto st = az.scalar_type();
   TORCH_CHECK(st == at::kFloat || st == at::kDouble, "azimuth must be float32 or float64");
   const int64_t N = az.size(0), R = ray_az_in.size(0), F = feat.dim() == 2 ? feat.size(1) : 0;
@@ -679,6 +698,8 @@ std::vector<at::Tensor> lidar_forward(at::Tensor az, at::Tensor el, at::Tensor o
   check(visible, at::kBool, "visible", N, -1);
   check(ray_az_in, st, "ray_azimuth", R, -1);
   check(ray_el, st, "ray_elevation", R, -1);
+  const bool probed = probe.numel() > 0;
+  if (probed) check(probe, st, "probe_range", R, -1);
   TORCH_CHECK(N < (int64_t(1) << 31), "too many Gaussians for int32 ids");
   const int nt = int(std::max<int64_t>(1, nthreads));
   const Tiling tiling{columns, rows, column_deg, row_deg, first_elevation};
@@ -687,6 +708,7 @@ std::vector<at::Tensor> lidar_forward(at::Tensor az, at::Tensor el, at::Tensor o
   at::Tensor ray_tile = at::empty({R}, at::kLong), box = at::empty({N, 4}, at::kLong);
   at::Tensor rec = at::empty({N, REC}, opts), o_feat = at::empty({R, F}, opts), o_rsum = at::empty({R}, opts);
   at::Tensor o_alpha = at::empty({R}, opts), o_median = at::empty({R}, opts);
+  at::Tensor o_probe = at::empty({probed ? R : 0}, opts);
   Lists gl, rl;
   AT_DISPATCH_FLOATING_TYPES(st, "lidar_forward", [&] {
     prepare_rays<scalar_t>(R, ray_az_in.data_ptr<scalar_t>(), ray_el.data_ptr<scalar_t>(), tiling,
@@ -708,20 +730,22 @@ std::vector<at::Tensor> lidar_forward(at::Tensor az, at::Tensor el, at::Tensor o
                            rec.data_ptr<scalar_t>(), nt);
     composite_forward<scalar_t>(gl, rl, rec.data_ptr<scalar_t>(), feat.data_ptr<scalar_t>(), int(F),
                                 ray_az.data_ptr<scalar_t>(), ray_el.data_ptr<scalar_t>(), dirs.data_ptr<scalar_t>(),
-                                scalar_t(min_range), scalar_t(max_range), o_feat.data_ptr<scalar_t>(),
+                                scalar_t(min_range), scalar_t(max_range),
+                                probed ? probe.data_ptr<scalar_t>() : nullptr, o_feat.data_ptr<scalar_t>(),
                                 o_rsum.data_ptr<scalar_t>(), o_alpha.data_ptr<scalar_t>(),
-                                o_median.data_ptr<scalar_t>(), nt);
+                                o_median.data_ptr<scalar_t>(), probed ? o_probe.data_ptr<scalar_t>() : nullptr, nt);
   });
-  return {o_feat, o_rsum, o_alpha, o_median, rec, gl.off, gl.items, rl.off, rl.items, ray_az, dirs};
+  return {o_feat, o_rsum, o_alpha, o_median, rec, gl.off, gl.items, rl.off, rl.items, ray_az, dirs, o_probe};
 }
 
-// Backward: dL/d(features, range sum, alpha, median range) per ray -> (N, G_F + F) float64
-// per-Gaussian gradients: azimuth, elevation, conic a b c, opacity, quad (6), lin (3), features (F).
+// Backward: dL/d(features, range sum, alpha, median range, transmittance at the probes) per
+// ray -> (N, G_F + F) float64 per-Gaussian gradients: azimuth, elevation, conic a b c,
+// opacity, quad (6), lin (3), features (F). probe, o_probe, g_probe: (R,) each, or (0,) for none.
 at::Tensor lidar_backward(at::Tensor rec, at::Tensor feat, at::Tensor goff, at::Tensor gids, at::Tensor roff,
                           at::Tensor rids, at::Tensor ray_az, at::Tensor ray_el, at::Tensor dirs, at::Tensor o_feat,
                           at::Tensor o_rsum, at::Tensor o_alpha, at::Tensor g_feat, at::Tensor g_rsum,
                           at::Tensor g_alpha, at::Tensor g_median, double min_range, double max_range,
-                          int64_t nthreads) {
+                          at::Tensor probe, at::Tensor o_probe, at::Tensor g_probe, int64_t nthreads) {
   const auto st = rec.scalar_type();
   const int64_t N = rec.size(0), R = ray_az.size(0), F = feat.size(1);
   check(rec, st, "records", N, REC);
@@ -733,6 +757,11 @@ at::Tensor lidar_backward(at::Tensor rec, at::Tensor feat, at::Tensor goff, at::
                          {&ray_el, "ray_elevation"}})
     check(*t, st, name, R, -1);
   check(dirs, st, "directions", R, 3);
+  const bool probed = probe.numel() > 0;
+  if (probed)
+    for (auto [t, name] : {std::pair{&probe, "probe_range"}, {&o_probe, "probe transmittance"},
+                           {&g_probe, "probe gradient"}})
+      check(*t, st, name, R, -1);
   const int nt = int(std::max<int64_t>(1, nthreads));
   at::Tensor grads = at::zeros({N, G_F + F}, at::kDouble);
   Lists gl{goff, gids}, rl{roff, rids};
@@ -742,8 +771,10 @@ at::Tensor lidar_backward(at::Tensor rec, at::Tensor feat, at::Tensor goff, at::
                                  scalar_t(min_range), scalar_t(max_range), o_feat.data_ptr<scalar_t>(),
                                  o_rsum.data_ptr<scalar_t>(), o_alpha.data_ptr<scalar_t>(),
                                  g_feat.data_ptr<scalar_t>(), g_rsum.data_ptr<scalar_t>(),
-                                 g_alpha.data_ptr<scalar_t>(), g_median.data_ptr<scalar_t>(), N,
-                                 grads.data_ptr<double>(), nt);
+                                 g_alpha.data_ptr<scalar_t>(), g_median.data_ptr<scalar_t>(),
+                                 probed ? probe.data_ptr<scalar_t>() : nullptr,
+                                 probed ? o_probe.data_ptr<scalar_t>() : nullptr,
+                                 probed ? g_probe.data_ptr<scalar_t>() : nullptr, N, grads.data_ptr<double>(), nt);
   });
   return grads;
 }
