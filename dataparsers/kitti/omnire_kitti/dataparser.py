@@ -28,9 +28,10 @@ Conventions (KITTI devkit readmes and "Vision meets Robotics: The KITTI Dataset"
 - LiDAR: the Velodyne (HDL-64E) frame is x forward, y left, z up: ``sensor_to_world`` is it
   at the frame's time; reflectance (0-1) is the intensity. The files hold no per-point time
   (``times`` is None) and no laser index, and the HDL-64E's elevations are per-unit
-  calibration values KITTI does not publish: the 64 beams are measured from the loaded
-  sweeps (omnire_kitti/hdl64e.py) and give ``beams`` and ``beam_model``; when the
-  measurement is not trusted both stay None and one warning says why.
+  calibration values KITTI does not publish: the 64 beams are the scan lines of the files'
+  order (a scan is stored laser by laser), their elevations measured from the loaded sweeps
+  (omnire_kitti/hdl64e.py); they give ``beams`` and ``beam_model``; when neither the order
+  nor the elevations give 64 beams both stay None and one warning says why.
 - Pixels: the devkit gives 2D boxes "in the image (0-based index)" in the same pixel
   coordinates P_i projects to, i.e. pixel centres at integers; K gets +0.5 px for omnire.
 - Labels: per row frame, track id, type, truncated, occluded, alpha, 2D box (4), dimensions
@@ -324,12 +325,14 @@ class KittiDataparser(Dataparser):
             raise KittiFileMissing(f"{folder}: missing Velodyne folder of sequence {seq} (--no-load-lidar skips LiDAR)")
         points: list[Optional[np.ndarray]] = []
         reflectance: list[Optional[np.ndarray]] = []
+        lines: list[Optional[np.ndarray]] = []
         sensor_to_world = np.full((len(frames), 4, 4), np.nan)
         for j, f in enumerate(frames):
             path = folder / f"{f:06d}.bin"
             if not path.is_file():  # real gaps exist (training 0001 lacks frames 177-180)
                 points.append(None)
                 reflectance.append(None)
+                lines.append(None)
                 continue
             size = path.stat().st_size
             if size % 16:
@@ -339,12 +342,14 @@ class KittiDataparser(Dataparser):
             if not np.isfinite(rows).all():
                 raise KittiDataError(f"{path}: non-finite values")
             rows[:, 3] = UNIT_INTENSITY.to_unit(rows[:, 3], f"{path}: column 4 (reflectance)", KittiDataError)
+            rows = np.column_stack([rows, hdl64e.scan_lines(rows[:, :3])])  # counted in file order, before thinning
             rows = thin_points(rows, cfg.max_lidar_points_per_frame, f)  # keyed by the frame of the log
+            lines.append(rows[:, 4].astype(np.int64))
             M = velo_to_world[j]  # the Velodyne's axes are x forward, y left, z up already
             points.append((rows[:, :3] @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
             reflectance.append(rows[:, 3].astype(np.float32))
             sensor_to_world[j] = M
-        fit = hdl64e.measure_beams(points, sensor_to_world) if cfg.estimate_beams else None
+        fit = hdl64e.measure_beams(points, sensor_to_world, lines) if cfg.estimate_beams else None
         if fit is not None and fit.model is None:
             warnings.warn(f"{folder}: the sweeps get no beams: {fit.reason} (--no-estimate-beams skips the "
                           "measurement)", stacklevel=3)

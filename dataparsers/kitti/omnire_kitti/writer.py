@@ -21,7 +21,8 @@ Written (``<output>/training/``, sequence 0000), as the tracking release has it:
   in Karlsruhe) and roll / pitch / yaw, with velocities, accelerations (gravity included)
   and yaw rate from finite differences. The Velodyne frame sits at the synthetic LiDAR's
   position with a small mounting yaw; scans are float32 x y z reflectance of the returns
-  (rays that came back empty are not stored, as in KITTI). Generated with
+  (rays that came back empty are not stored, as in KITTI), stored in KITTI's order
+  (:func:`scan_order`). Generated with
   :data:`HDL64E_LIKE_ELEVATIONS_DEG`, the sweeps have an HDL-64E's 64 uneven beams.
 - Labels: boxes present in a frame whose projection meets image_02 (as KITTI labels objects
   seen by the camera); types Car / Pedestrian / Cyclist; track id = actor index; values with
@@ -110,6 +111,8 @@ def write_kitti(source: Path, output: Path) -> dict:
         velo_to_gen = src.ego[f] @ velo_to_ego
         p = (src.points(f) - velo_to_gen[:3, 3]) @ velo_to_gen[:3, :3]  # (N, 3) Velodyne frame
         refl = src.intensity[f] if src.intensity[f] is not None else np.zeros(len(p))
+        order = scan_order(p)
+        p, refl = p[order], np.asarray(refl)[order]
         atomic_write_bytes(split / "velodyne" / SEQUENCE / f"{f:06d}.bin",
                            np.column_stack([p, UNIT_INTENSITY.from_unit(refl)]).astype("<f4").tobytes())
     atomic_write_text(split / "label_02" / f"{SEQUENCE}.txt", _labels(src, rect_to_ego, P[2], W, H))
@@ -118,6 +121,19 @@ def write_kitti(source: Path, output: Path) -> dict:
                           "the oxts poses (x east, y north, z altitude)")
     return {"frames": F, "P2": P[2], "R_rect": R_rect, "K_rect": K_rect, "rect_to_ego": rect_to_ego,
             "velo_to_ego": velo_to_ego, "mercator_from_generator": mercator_from_gen}
+
+
+def scan_order(points_velodyne: np.ndarray, gap_deg: float = 0.05) -> np.ndarray:
+    """(N, 3) returns of a sweep cast from the optical centre -> (N,) the order KITTI stores a
+    scan in: laser by laser from the top one, each laser's returns by increasing azimuth from
+    behind the car. A laser's returns share one elevation here, so lasers are the elevation
+    clusters (a gap above ``gap_deg`` between sorted elevations starts a new one)."""
+    az = np.arctan2(points_velodyne[:, 1], points_velodyne[:, 0])
+    el = np.rad2deg(np.arctan2(points_velodyne[:, 2], np.hypot(points_velodyne[:, 0], points_velodyne[:, 1])))
+    by_el = np.argsort(-el, kind="stable")
+    laser = np.empty(len(el), dtype=np.int64)
+    laser[by_el] = np.concatenate([[0], np.cumsum(-np.diff(el[by_el]) > gap_deg)]) if len(el) else []
+    return np.lexsort((az, laser))
 
 
 def _fmt(values) -> str:

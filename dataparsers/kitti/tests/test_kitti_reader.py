@@ -26,7 +26,8 @@ from omnire_kitti import (
     oxts_poses,
     read_calib,
 )
-from omnire_kitti.writer import CAMERA_T, HDL64E_LIKE_ELEVATIONS_DEG, VELODYNE_AXES, write_kitti
+from omnire_kitti import hdl64e
+from omnire_kitti.writer import CAMERA_T, HDL64E_LIKE_ELEVATIONS_DEG, VELODYNE_AXES, scan_order, write_kitti
 
 FRAMES = 10
 AZIMUTH_STEP = 0.5
@@ -169,15 +170,18 @@ def test_rectified_image_content(synth):
 
 def test_lidar_round_trip(synth):
     s, ref = synth.scene, synth.ref
+    stored = {}  # frame -> the processed sweep's order of the KITTI file's returns
     for f in range(FRAMES):
         expected = ref.lidar.points[f].astype(np.float64) @ synth.M[:3, :3].T + synth.M[:3, 3]
+        V = s.lidar.sensor_to_world[f]
+        stored[f] = scan_order((expected - V[:3, 3]) @ V[:3, :3])
         assert s.lidar.points[f].shape == expected.shape
-        assert np.abs(s.lidar.points[f] - expected).max() < 5e-5
+        assert np.abs(s.lidar.points[f] - expected[stored[f]]).max() < 5e-5
     origins = ref.lidar.origins @ synth.M[:3, :3].T + synth.M[:3, 3]
     assert np.allclose(s.lidar.origins, origins, atol=1e-6)
     for f in s.lidar.available_frames():  # reflectance is the intensity; the pose is the Velodyne's
         assert s.lidar.intensity[f].dtype == np.float32 and 0 <= s.lidar.intensity[f].min() <= s.lidar.intensity[f].max() <= 1
-        np.testing.assert_allclose(s.lidar.intensity[f], ref.lidar.intensity[f], atol=1e-6)
+        np.testing.assert_allclose(s.lidar.intensity[f], ref.lidar.intensity[f][stored[f]], atol=1e-6)
         np.testing.assert_allclose(s.lidar.sensor_to_world[f][:3, 3], s.lidar.origins[f])
         assert s.lidar.sensor_to_world[f][:3, 0] @ s.ego_poses[f][:3, 0] > 0.99  # Velodyne x = forward
     assert s.lidar.times is None
@@ -195,20 +199,82 @@ def _cast_beam(elevation_deg: np.ndarray) -> np.ndarray:
 
 def test_hdl64e_beams_measured_from_sweeps(synth):
     """The 64 uneven elevations, each return's beam and the azimuth step come back from the
-    sweeps alone (the files hold x y z reflectance only)."""
+    sweeps alone (the files hold x y z reflectance only, laser by laser from the top one)."""
     lidar = synth.scene.lidar
     model = lidar.beam_model
     assert model is not None and model.num_beams == 64 and model.max_range == 120.0
+    assert "scan lines" in model.name
     np.testing.assert_allclose(model.elevations_deg, HDL64E_LIKE_ELEVATIONS_DEG, atol=0.05)  # top to bottom
     assert model.azimuth_resolution_deg == pytest.approx(AZIMUTH_STEP, abs=1e-9)
-    on_beam = total = 0
     for f in lidar.available_frames():
         rows = np.fromfile(synth.split / "velodyne" / "0000" / f"{f:06d}.bin", dtype="<f4").reshape(-1, 4)
         true_beam = _cast_beam(spherical(rows[:, :3].astype(np.float64))[2])
-        assert lidar.beams[f].dtype == np.int16 and lidar.beams[f].shape == true_beam.shape
-        on_beam += int((lidar.beams[f] == true_beam).sum())
-        total += len(true_beam)
-    assert on_beam / total >= 0.99
+        assert lidar.beams[f].dtype == np.int16
+        np.testing.assert_array_equal(lidar.beams[f], true_beam)
+
+
+def test_scan_order_of_written_sweeps(synth):
+    """The writer stores a scan as KITTI does: laser by laser from the top one, each by
+    increasing azimuth; scan_lines reads the lasers back from that order alone."""
+    for f in (0, FRAMES - 1):
+        rows = np.fromfile(synth.split / "velodyne" / "0000" / f"{f:06d}.bin", dtype="<f4").reshape(-1, 4)
+        el = spherical(rows[:, :3].astype(np.float64))[2]
+        az = np.arctan2(rows[:, 1], rows[:, 0])  # from behind the car (-pi) round to behind it again
+        cast = _cast_beam(el)
+        assert np.all(np.diff(cast) >= 0) and np.all(np.diff(az)[np.diff(cast) == 0] > 0)
+        np.testing.assert_array_equal(hdl64e.scan_lines(rows[:, :3]), cast)
+    with pytest.raises(ValueError, match=r"scan_lines: points \(5, 4\), expected \(N, 3\)"):
+        hdl64e.scan_lines(np.zeros((5, 4)))
+
+
+def _offset_laser_sweep(azimuth_step: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """One HDL-64E-like revolution whose lasers sit off the optical centre, as a real unit's
+    do, cast analytically: (N, 3) returns in KITTI's order and (N,) the laser of each.
+
+    Laser b fires from (0, 0, h_b) at elevation HDL64E_LIKE_ELEVATIONS_DEG[b] (h_b about
+    0.15 m in the upper block, 0.05 m in the lower, as a real KITTI scan's lines fit); the
+    scene is flat ground 1.73 m below the centre and a 3 m high wall at a horizontal distance
+    that varies with azimuth between 6 and 40 m (beyond its top: nothing)."""
+    rng = np.random.default_rng(3)
+    el = np.deg2rad(np.array(HDL64E_LIKE_ELEVATIONS_DEG))
+    h = np.concatenate([rng.uniform(0.11, 0.21, 32), rng.uniform(0.03, 0.07, 32)])
+    az = np.deg2rad(np.arange(-180.0, 180.0, azimuth_step) + 0.1)
+    E, A = np.meshgrid(el, az, indexing="ij")  # (64, A): laser-major, as KITTI stores them
+    H = np.repeat(h[:, None], len(az), 1)
+    wall = 6.0 + 34.0 * (0.5 + 0.5 * np.sin(3 * A))  # horizontal distance of the wall
+    t_wall = wall / np.cos(E)
+    z_wall = H + t_wall * np.sin(E)
+    t_ground = np.where(E < 0, (-1.73 - H) / np.sin(np.minimum(E, -1e-9)), np.inf)
+    t = np.where((z_wall <= 3.0) & (t_wall < t_ground), t_wall, t_ground)
+    hit = np.isfinite(t) & (t < 120.0)
+    d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1)
+    p = d * t[..., None]
+    p[..., 2] += H
+    laser = np.repeat(np.arange(64)[:, None], len(az), 1)
+    return p[hit], laser[hit]
+
+
+def test_lasers_off_the_optical_centre_need_the_file_order():
+    """With lasers 3-21 cm off the optical centre (a real HDL-64E), near returns' apparent
+    elevations stray by more than the spacing between lasers: the elevations alone are
+    refused, the file order gives every return its laser."""
+    sweeps = [_offset_laser_sweep() for _ in range(3)]
+    points = [p for p, _ in sweeps]
+    poses = np.repeat(np.eye(4)[None], 3, 0)
+    el = spherical(points[0])[2]
+    far = np.linalg.norm(points[0], axis=1) > hdl64e.MIN_RANGE_M
+    stray = np.abs(el - np.array(HDL64E_LIKE_ELEVATIONS_DEG)[sweeps[0][1]])[far]
+    assert np.percentile(stray, 90) > 0.3  # the offsets matter (about h / d)
+    by_elevation = hdl64e.measure_beams(points, poses)
+    assert by_elevation.model is None and by_elevation.reason.startswith("file order: no scan lines given; elevations:")
+    fit = hdl64e.measure_beams(points, poses, [hdl64e.scan_lines(p) for p in points])
+    assert fit.model is not None and fit.reason == ""
+    for (_, laser), beams in zip(sweeps, fit.beams):
+        np.testing.assert_array_equal(beams, laser)
+    assert np.all(np.diff(fit.model.elevations_deg) < 0)  # the lines' medians, top to bottom
+    assert fit.model.azimuth_resolution_deg == pytest.approx(0.5, abs=1e-9)
+    with pytest.raises(ValueError, match=r"sweep 1 has \d+ returns and scan lines of shape \(3,\)"):
+        hdl64e.measure_beams(points, poses, [hdl64e.scan_lines(points[0]), np.zeros(3), None])
 
 
 def test_missing_returns_recovered_on_beam_grid(synth):
@@ -233,18 +299,40 @@ def test_missing_returns_recovered_on_beam_grid(synth):
         assert (~image.returned).sum() == 64 * A - len(r) > 0  # the missing returns (sky, range, grazing)
 
 
-@pytest.mark.parametrize("damage, reason", [
-    ("continuous", "deg of their beam's elevation|not one of 64 lasers"),
-    ("half_the_lasers", r"found \d+ elevation peaks, expected 64"),
-])
-def test_untrusted_beams_warn_once(synth, tmp_path, damage, reason):
-    """Sweeps whose elevations are not 64 distinct beams load without beams, with one
-    warning naming the folder and the reason; --no-estimate-beams skips the measurement."""
+def test_shuffled_scans_fall_back_to_elevations(synth, tmp_path):
+    """Scans stored in another order give no scan lines; the elevations still give every
+    return its laser (the synthetic lasers sit at the optical centre)."""
     root = copy_split(synth, tmp_path)
     rng = np.random.default_rng(0)
     for path in sorted((root / "training" / "velodyne" / "0000").glob("*.bin")):
         rows = np.fromfile(path, dtype="<f4").reshape(-1, 4)
-        if damage == "continuous":  # elevations spread over +-3 degrees of their beams
+        path.write_bytes(rows[rng.permutation(len(rows))].tobytes())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        s = parse(root)
+    assert not [w for w in caught if "beams" in str(w.message)]
+    assert s.lidar.beam_model is not None and "elevations measured from the sweeps" in s.lidar.beam_model.name
+    for f in s.lidar.available_frames():
+        M = s.lidar.sensor_to_world[f]
+        el = spherical((s.lidar.points[f].astype(np.float64) - M[:3, 3]) @ M[:3, :3])[2]
+        np.testing.assert_array_equal(s.lidar.beams[f], _cast_beam(el))
+
+
+@pytest.mark.parametrize("damage, reason", [
+    ("continuous", r"file order: loaded sweep 0 holds \d+ scan lines, expected 64; elevations: .*"
+                   "(deg of their beam's elevation|not one of 64 lasers)"),
+    ("half_the_lasers", r"file order: loaded sweep 0 holds 32 scan lines, expected 64; elevations: .*"
+                        r"found \d+ elevation peaks, expected 64"),
+])
+def test_untrusted_beams_warn_once(synth, tmp_path, damage, reason):
+    """Sweeps whose order and elevations both fail to give 64 beams load without beams, with
+    one warning naming the folder and both reasons; --no-estimate-beams skips the measurement."""
+    root = copy_split(synth, tmp_path)
+    rng = np.random.default_rng(0)
+    for path in sorted((root / "training" / "velodyne" / "0000").glob("*.bin")):
+        rows = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+        if damage == "continuous":  # order lost, elevations spread over +-3 degrees of their beams
+            rows = rows[rng.permutation(len(rows))]
             rows[:, 2] += rng.uniform(-0.05, 0.05, len(rows)) * np.linalg.norm(rows[:, :2], axis=1)
         else:  # a 32-laser sensor: every other beam's returns removed
             rows = rows[_cast_beam(spherical(rows[:, :3].astype(np.float64))[2]) % 2 == 0]
