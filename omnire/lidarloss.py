@@ -46,12 +46,16 @@ class LineOfSightProbes:
 
 def line_of_sight_probes(sweep: SweepRays, config: LidarConfig, generator: Optional[torch.Generator] = None
                          ) -> Optional[LineOfSightProbes]:
-    """The probes of ``lidar_surface`` and ``lidar_free_space`` on ``sweep``'s returned rays:
-    ``surface_margin`` past the return, in front of it, or (both terms on) one side per ray
-    drawn from ``generator`` with even odds. None when both terms are off."""
+    """The probes of ``lidar_surface`` and ``lidar_free_space`` on ``sweep``'s returned rays
+    (not those at a depth edge, :attr:`SweepRays.depth_edge`, where a ray grazing a
+    silhouette says nothing of either surface): ``surface_margin`` past the return, in front
+    of it, or (both terms on) one side per ray drawn from ``generator`` with even odds. None
+    when both terms are off."""
     if not (config.surface_weight or config.free_space_weight):
         return None
     returned = np.asarray(sweep.returned, dtype=bool)
+    if sweep.depth_edge is not None:
+        returned = returned & ~sweep.depth_edge
     if config.surface_weight and config.free_space_weight:
         coin = torch.rand(len(returned), generator=generator).numpy() < 0.5
     else:

@@ -59,6 +59,8 @@ class SweepRays:
         origins, directions: (R, 3) float64 world position of the sensor when the ray fired
             and the ray's unit world direction, for a recorded sweep (from the sensor path
             it was recorded along); None for rays of a pose no sensor visited.
+        depth_edge: (R,) bool, the returns at a depth edge (:func:`depth_edges`); None when
+            not measured.
     """
 
     azimuth_deg: np.ndarray
@@ -74,6 +76,7 @@ class SweepRays:
     max_range: float
     origins: Optional[np.ndarray] = None
     directions: Optional[np.ndarray] = None
+    depth_edge: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         return len(self.azimuth_deg)
@@ -225,6 +228,38 @@ def recorded_sweep(scene: SceneData, frame: int, grid_only: bool = False) -> Opt
                       intensity=None if lidar.intensity is None else lidar.intensity[frame],
                       beams=None if lidar.beams is None else lidar.beams[frame], model=lidar.beam_model,
                       grid_only=grid_only)
+
+
+def depth_edges(sweep: SweepRays, model: BeamModel, relative_jump: float) -> np.ndarray:
+    """(R,) bool: the returns of ``sweep`` at a depth edge of its range image, where a ray
+    may graze one surface and return from another behind it.
+
+    A return on the beam grid (``column`` >= 0) is at an edge when one of its four grid
+    neighbours (the adjacent azimuth columns of its beam, wrapping round; the beams just
+    above and below it in elevation, same column) returned nothing, or returned at a range
+    differing from its own by more than ``relative_jump`` times its own range; a neighbour
+    off the top or bottom beam does not count. A return off the grid (a second return in an
+    occupied cell) is always at an edge. Rays that did not return are False.
+    """
+    B, A = model.num_beams, model.num_azimuths
+    returned = np.asarray(sweep.returned, dtype=bool)
+    on_grid = returned & (sweep.column >= 0)
+    row_of_beam = np.empty(B, dtype=np.int64)
+    row_of_beam[np.argsort(-model.elevations_deg, kind="stable")] = np.arange(B)  # row 0: the top beam
+    rows, cols = row_of_beam[sweep.beam[on_grid].astype(np.int64)], sweep.column[on_grid]
+    image = np.full((B + 2, A), np.nan)  # a row of "no neighbour" above and below, told apart below
+    image[rows + 1, cols] = sweep.range[on_grid]
+    outside = np.zeros((B + 2, A), dtype=bool)
+    outside[[0, -1]] = True
+    r = image[rows + 1, cols]
+    edge = np.zeros(len(r), dtype=bool)
+    for dr, dc in ((0, -1), (0, 1), (-1, 0), (1, 0)):
+        nr, nc = rows + 1 + dr, (cols + dc) % A
+        other = image[nr, nc]
+        edge |= ~outside[nr, nc] & ~(np.abs(other - r) <= relative_jump * r)  # NaN (no return) counts as an edge
+    out = returned & (sweep.column < 0)
+    out[np.flatnonzero(on_grid)] = edge
+    return out
 
 
 def beam_model_sweep(model: BeamModel, time: float) -> SweepRays:

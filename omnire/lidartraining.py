@@ -4,19 +4,20 @@ omnire/trainer.py).
 
 The frame and the rays are drawn from a generator of their own (seeded, saved in
 checkpoints), so switching LiDAR on does not change which camera views a run trains on.
-Recorded sweeps are read once per frame and kept.
+Recorded sweeps are read once per frame and kept, with their depth edges.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 import torch
 
 from omnire.lidarloss import lidar_loss_terms, line_of_sight_probes
 from omnire.lidarmodel import LidarConfig
-from omnire.lidarsweep import SweepRays, aimed_from_sectors, recorded_sweep, sensor_path
+from omnire.lidarsweep import SweepRays, aimed_from_sectors, depth_edges, recorded_sweep, sensor_path
 
 if TYPE_CHECKING:
     from omnire.runtime import Reconstruction
@@ -32,9 +33,10 @@ class LidarTraining:
         sampler: the generator drawing frames and rays.
     """
 
-    def __init__(self, recon: "Reconstruction", seed: int) -> None:
+    def __init__(self, recon: "Reconstruction", seed: int, edge_jump: Optional[float] = None) -> None:
         scene = recon.scene
         self.recon = recon
+        self.edge_jump = edge_jump
         self.frames = np.array([int(f) for f in scene.train_frames if scene.lidar.points[int(f)] is not None])
         self.path = sensor_path(scene)
         self.sampler = torch.Generator().manual_seed(seed)
@@ -48,7 +50,11 @@ class LidarTraining:
     def sweep(self, frame: int) -> SweepRays:
         """The recorded sweep of ``frame`` (read once)."""
         if frame not in self._sweeps:
-            self._sweeps[frame] = recorded_sweep(self.recon.scene, frame)
+            sweep = recorded_sweep(self.recon.scene, frame)
+            model, jump = self.recon.scene.lidar.beam_model, self.edge_jump
+            if model is not None and sweep.drops_known and jump is not None:
+                sweep = dataclasses.replace(sweep, depth_edge=depth_edges(sweep, model, jump))
+            self._sweeps[frame] = sweep
         return self._sweeps[frame]
 
     def sample(self, rays_per_step: int) -> SweepRays:

@@ -181,7 +181,8 @@ class Trainer:
         self.test_views = self.scene.views(self.scene.test_frames)
         self.train_seconds = 0.0
         self._step_started = time.perf_counter()  # the current step's start (the schedule's clock)
-        self.lidar = LidarTraining(self.recon, tc.seed + 2) if self.model.lidar_features is not None else None
+        self.lidar = (LidarTraining(self.recon, tc.seed + 2, self.config.method.lidar.probe_edge_jump)
+                      if self.model.lidar_features is not None else None)
         self._lidar_baselines: Optional[dict] = None  # the held-out sweeps' baselines, at the first evaluation
         self._sh_bands_degree: Optional[int] = None  # the degree fit_sh_bands last stored bands for
         self.observers: list = []
