@@ -17,6 +17,8 @@ from omnire.beams import (
     points_in_sensor_frame,
     range_image,
     spherical,
+    spread_sample,
+    whole_revolution_step,
 )
 from omnire.camera import CULL_SIGMAS, Camera, gaussian_reach, in_frustum, may_be_drawn
 from omnire.config import InstantiateConfig

@@ -118,6 +118,18 @@ def estimate_azimuth_resolution(azimuth_deg: np.ndarray, beams: np.ndarray) -> f
     return float(np.median(gaps))
 
 
+def spread_sample(indices: list[int], count: int) -> list[int]:
+    """Up to ``count`` of ``indices`` (sweeps with returns), spread evenly from the first to
+    the last, in order and without repeats."""
+    return sorted({indices[int(k)] for k in np.linspace(0, len(indices) - 1, min(count, len(indices)))})
+
+
+def whole_revolution_step(step_deg: float) -> float:
+    """A measured azimuth step (degrees) rounded so that one revolution holds a whole number
+    of steps (the width of a range image)."""
+    return 360.0 / int(round(360.0 / step_deg))
+
+
 @dataclasses.dataclass
 class RangeImage:
     """One sweep on its beam grid (rows = beam index, columns = azimuth bins).
@@ -226,7 +238,7 @@ def fit_beams(points_sensor: list[Optional[np.ndarray]], num_beams: int, max_ran
     present = [i for i, p in enumerate(points_sensor) if p is not None and len(p)]
     if not present:
         return BeamFit(None, None, float("nan"), "no returns")
-    sample = sorted({present[int(k)] for k in np.linspace(0, len(present) - 1, min(sample_sweeps, len(present)))})
+    sample = spread_sample(present, sample_sweeps)
     sph = {i: spherical(points_sensor[i]) for i in sample}
     far_el = np.concatenate([el[rng > min_range] for rng, _, el in sph.values()])
     if len(far_el) < 10 * num_beams:
@@ -265,6 +277,5 @@ def fit_beams(points_sensor: list[Optional[np.ndarray]], num_beams: int, max_ran
                                           f"expected of {num_beams} beams)")
     if not steps:
         return BeamFit(None, None, share, "no beam has two returns in a sweep: the azimuth step is unknown")
-    columns = int(round(360.0 / float(np.median(steps))))
-    model = BeamModel(elevations, 360.0 / columns, max_range, name=name)
+    model = BeamModel(elevations, whole_revolution_step(float(np.median(steps))), max_range, name=name)
     return BeamFit(model, beams, share, "")

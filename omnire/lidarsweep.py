@@ -247,16 +247,15 @@ def depth_edges(sweep: SweepRays, model: BeamModel, relative_jump: float) -> np.
     row_of_beam = np.empty(B, dtype=np.int64)
     row_of_beam[np.argsort(-model.elevations_deg, kind="stable")] = np.arange(B)  # row 0: the top beam
     rows, cols = row_of_beam[sweep.beam[on_grid].astype(np.int64)], sweep.column[on_grid]
-    image = np.full((B + 2, A), np.nan)  # a row of "no neighbour" above and below, told apart below
-    image[rows + 1, cols] = sweep.range[on_grid]
-    outside = np.zeros((B + 2, A), dtype=bool)
-    outside[[0, -1]] = True
-    r = image[rows + 1, cols]
+    image = np.full((B, A), np.nan)  # (B, A) range, NaN where nothing returned
+    image[rows, cols] = sweep.range[on_grid]
+    r = image[rows, cols]
     edge = np.zeros(len(r), dtype=bool)
     for dr, dc in ((0, -1), (0, 1), (-1, 0), (1, 0)):
-        nr, nc = rows + 1 + dr, (cols + dc) % A
-        other = image[nr, nc]
-        edge |= ~outside[nr, nc] & ~(np.abs(other - r) <= relative_jump * r)  # NaN (no return) counts as an edge
+        nr = rows + dr
+        inside = (nr >= 0) & (nr < B)
+        other = image[np.clip(nr, 0, B - 1), (cols + dc) % A]
+        edge |= inside & ~(np.abs(other - r) <= relative_jump * r)  # NaN (no return) counts as an edge
     out = returned & (sweep.column < 0)
     out[np.flatnonzero(on_grid)] = edge
     return out

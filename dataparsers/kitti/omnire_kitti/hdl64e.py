@@ -32,7 +32,8 @@ from typing import Optional
 
 import numpy as np
 
-from omnire.api import BeamFit, BeamModel, estimate_azimuth_resolution, fit_beams, median_per_beam, spherical
+from omnire.api import (BeamFit, BeamModel, estimate_azimuth_resolution, fit_beams, median_per_beam, spherical,
+                        spread_sample, whole_revolution_step)
 
 LASERS = 64
 """Lasers of the HDL-64E (upper and lower block of 32)."""
@@ -112,7 +113,7 @@ def _beams_from_scan_lines(local: list[Optional[np.ndarray]], lines: list[Option
         found = int(lines[i][-1]) + 1
         if found != LASERS:
             return BeamFit(None, None, float("nan"), f"loaded sweep {i} holds {found} scan lines, expected {LASERS}")
-    sample = sorted({present[int(k)] for k in np.linspace(0, len(present) - 1, min(SAMPLE_SWEEPS, len(present)))})
+    sample = spread_sample(present, SAMPLE_SWEEPS)
     sph = {i: spherical(local[i]) for i in sample}
     far = {i: rng > MIN_RANGE_M for i, (rng, _, _) in sph.items()}
     line_of = np.concatenate([lines[i][far[i]] for i in sample])
@@ -127,7 +128,7 @@ def _beams_from_scan_lines(local: list[Optional[np.ndarray]], lines: list[Option
         return BeamFit(None, None, float("nan"), "two scan lines have the same median elevation")
     share = float(np.mean(np.abs(elevation_of - elevations[line_of]) <= TOLERANCE_DEG))
     steps = [estimate_azimuth_resolution(sph[i][1], lines[i]) for i in sample]
-    model = BeamModel(elevations, 360.0 / int(round(360.0 / float(np.median(steps)))), MAX_RANGE_M,
+    model = BeamModel(elevations, whole_revolution_step(float(np.median(steps))), MAX_RANGE_M,
                       name="HDL-64E (scan lines in file order, elevations measured)")
     return BeamFit(model, [None if p is None else np.asarray(lines[i], dtype=np.int16) for i, p in enumerate(local)],
                    share, "")
